@@ -1,0 +1,33 @@
+# Two entry points: `make demo` runs the main job, `make test` runs lint and the test suite.
+# Both create .venv when it is missing. PYTHON picks the interpreter the venv is made from.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test lint bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	# The pinned CPU build first, so nothing resolves a newer torch with CUDA packages.
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+setup: $(STAMP)
+
+demo: $(STAMP)
+	$(PY) -m apps.bench --size smoke
+
+lint: $(STAMP)
+	$(PY) -m ruff check .
+
+test: lint
+	$(PY) -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "no tests collected"; rc=0; fi; exit $$rc
+
+bench: $(STAMP)
+	$(PY) -m apps.bench --size paper --json out/bench.json
+
+clean:
+	rm -rf $(VENV) out .pytest_cache .ruff_cache

@@ -1,0 +1,176 @@
+"""Device choice for Taichi and Warp, and zero-copy views between torch, Warp and Taichi.
+
+One process runs its kernels on one device. Taichi holds a single architecture per process
+(re-initialising it drops every compiled kernel and allocated field), so :func:`init` fixes the
+device once: a second call with the same device is a no-op, one with another device raises.
+
+Tensors are the currency between kernels and pipelines:
+
+* Taichi kernels take ``torch.Tensor`` arguments directly through ``ti.types.ndarray()``; on the
+  same device as the Taichi arch this is zero-copy (:func:`taichi_arg` checks that it will be).
+* Warp kernels take ``wp.array`` views made by :func:`to_warp` (``wp.from_torch``, zero-copy), and
+  :func:`to_torch` views a Warp array as a tensor.
+
+On CUDA, Warp is set to launch on torch's current stream so that torch, Warp and Taichi work on a
+tensor in program order without extra synchronisation.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = [
+    "DEVICES",
+    "available_devices",
+    "current_device",
+    "default_device",
+    "init",
+    "synchronize",
+    "taichi_arg",
+    "to_torch",
+    "to_warp",
+    "torch_device",
+    "warp_device",
+]
+
+DEVICES = ("cpu", "cuda")
+
+_device: str | None = None
+
+
+def available_devices() -> list[str]:
+    """Devices this machine can run kernels on: ``["cpu"]`` plus ``"cuda"`` when torch sees a GPU."""
+    return ["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"]
+
+
+def default_device() -> str:
+    """``"cuda"`` when present, else ``"cpu"``."""
+    return available_devices()[-1]
+
+
+def _check_device(device: str) -> str:
+    if device not in DEVICES:
+        raise ValueError(f"unknown device {device!r}; valid devices: {', '.join(DEVICES)}")
+    if _device is not None and device != _device:
+        raise RuntimeError(
+            f"kernels are already initialised for {_device!r} in this process and cannot switch to "
+            f"{device!r}; run a separate process with --device {device}"
+        )
+    if device not in available_devices():
+        raise ValueError(
+            f"device {device!r} is not available on this machine "
+            f"(available: {', '.join(available_devices())})"
+        )
+    return device
+
+
+def init(device: str | None = None) -> str:
+    """Initialise Taichi and Warp for ``device`` once for the whole process.
+
+    Args:
+        device: ``"cpu"`` or ``"cuda"``; ``None`` picks :func:`default_device`, or keeps the device
+            already chosen.
+
+    Returns:
+        The device in use.
+
+    Raises:
+        ValueError: the device is unknown or absent on this machine.
+        RuntimeError: the process was already initialised for another device.
+    """
+    global _device
+    if device is None:
+        device = _device or default_device()
+    _check_device(device)
+    if _device is not None:
+        return _device
+
+    import taichi as ti
+    import warp as wp
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    ti.init(
+        arch=ti.cuda if device == "cuda" else ti.cpu,
+        default_fp=ti.f32,
+        default_ip=ti.i32,
+        offline_cache=True,
+    )
+    if device == "cuda":
+        wp.set_stream(wp.stream_from_torch(torch.cuda.current_stream()), device="cuda:0")
+    _device = device
+    return device
+
+
+def current_device() -> str | None:
+    """The device :func:`init` chose, or ``None`` before it ran."""
+    return _device
+
+
+def _require_init() -> str:
+    if _device is None:
+        raise RuntimeError("kernels.backend.init(device) must run before kernels are launched")
+    return _device
+
+
+def torch_device() -> torch.device:
+    """The torch device matching the initialised backend."""
+    return torch.device("cuda:0" if _require_init() == "cuda" else "cpu")
+
+
+def warp_device() -> str:
+    """The Warp device name matching the initialised backend (``"cpu"`` or ``"cuda:0"``)."""
+    return "cuda:0" if _require_init() == "cuda" else "cpu"
+
+
+def synchronize() -> None:
+    """Wait for every kernel launched by torch, Warp and Taichi on the current device."""
+    device = _require_init()
+    if device == "cuda":
+        import taichi as ti
+        import warp as wp
+
+        ti.sync()
+        wp.synchronize_device("cuda:0")
+        torch.cuda.synchronize()
+
+
+def _check_on_device(tensor: torch.Tensor, what: str) -> None:
+    expected = torch_device()
+    if tensor.device.type != expected.type:
+        raise ValueError(
+            f"{what}: tensor is on {tensor.device}, kernels run on {expected}; move it with .to('{expected}')"
+        )
+    if not tensor.is_contiguous():
+        raise ValueError(f"{what}: tensor is not contiguous; call .contiguous() first")
+
+
+def to_warp(tensor: torch.Tensor, dtype=None, requires_grad: bool | None = None):
+    """A zero-copy ``wp.array`` view of ``tensor``.
+
+    Args:
+        tensor: contiguous tensor on the backend's device.
+        dtype: Warp dtype of the view, e.g. ``wp.vec3`` for a ``[N, 3]`` float32 tensor; ``None``
+            keeps the scalar type.
+        requires_grad: forwarded to ``wp.from_torch``.
+    """
+    import warp as wp
+
+    _check_on_device(tensor, "to_warp")
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=requires_grad)
+
+
+def to_torch(array) -> torch.Tensor:
+    """A zero-copy tensor view of a Warp array."""
+    import warp as wp
+
+    return wp.to_torch(array)
+
+
+def taichi_arg(tensor: torch.Tensor) -> torch.Tensor:
+    """Check that ``tensor`` can be passed to a ``ti.types.ndarray()`` argument without a copy.
+
+    Taichi silently copies tensors that live on another device than its arch; this refuses them.
+    """
+    _check_on_device(tensor, "taichi_arg")
+    return tensor

@@ -1,0 +1,1 @@
+"""PhysAvatar: garment physics and appearance from multi-view video, and animation under new motions."""

@@ -1,0 +1,1 @@
+"""PIE-NeRF: physics-based interactive elastodynamics of NeRF scenes with meshless Q-GMLS."""

@@ -1,0 +1,49 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from apps import bench
+
+
+def test_copy_workloads_write_complete_records(device, tmp_path):
+    path = tmp_path / "bench.json"
+    records = bench.main(
+        ["--workload", "copy_taichi,copy_warp,copy_torch", "--device", device, "--size", "smoke",
+         "--reps", "2", "--json", str(path)]
+    )
+    assert json.loads(path.read_text()) == records
+    assert [r["workload"] for r in records] == ["copy_taichi", "copy_warp", "copy_torch"]
+    for r in records:
+        assert r["device"] == device and r["size"] == "smoke" and r["reps"] == 2
+        assert 0 < r["min_s"] <= r["median_s"] <= r["max_s"]
+        assert r["throughput"] > 0 and r["unit"] == "GB/s"
+        assert r["reference_median_s"] > 0
+        assert r["speedup_vs_reference"] == pytest.approx(r["reference_median_s"] / r["median_s"])
+        assert r["params"]["elements"] == 1 << 20
+
+
+def test_list_names_every_workload(capsys):
+    bench.main(["--list"])
+    out = capsys.readouterr().out
+    for name in ("copy_taichi", "copy_warp", "copy_torch"):
+        assert name in out
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--workload", "nope"], "unknown workload 'nope'; valid: "),
+        (["--device", "tpu"], "unknown device 'tpu'; valid devices: cpu, cuda"),
+        (["--size", "huge"], "unknown size 'huge'; valid: smoke, paper, large"),
+    ],
+)
+def test_bad_input_is_one_clear_line(args, message):
+    result = subprocess.run(
+        [sys.executable, "-m", "apps.bench", *args], capture_output=True, text=True, check=False
+    )
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], result.stderr
+    assert "copy_taichi" in lines[0] or "workload" not in message

@@ -1,0 +1,48 @@
+"""Shared fixtures.
+
+Taichi holds one architecture per process, so a test process runs its kernels on one device:
+``--device`` picks it (default: cuda when present, else cpu). The ``device`` fixture is parametrised
+over that choice, so every kernel test runs on CPU here and on CUDA on a GPU machine; run
+``pytest --device cpu`` there for the CPU pass.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from kernels import backend
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--device",
+        default=None,
+        choices=list(backend.DEVICES),
+        help="device the kernels run on in this test process (default: cuda when present, else cpu)",
+    )
+
+
+def pytest_generate_tests(metafunc):
+    if "device" in metafunc.fixturenames:
+        device = metafunc.config.getoption("--device") or backend.default_device()
+        metafunc.parametrize("device", [device], indirect=True)
+
+
+@pytest.fixture
+def device(request) -> str:
+    """The device of this test process, with Taichi and Warp initialised for it."""
+    if request.param not in backend.available_devices():
+        pytest.skip(f"device {request.param!r} is not present on this machine")
+    return backend.init(request.param)
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The project's read-only data folder beside the checkout; skips where it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"shared data folder {SHARED_DATA} is absent on this machine")
+    return SHARED_DATA
