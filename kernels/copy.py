@@ -2,6 +2,10 @@
 
 Each moves ``2 * x.numel() * x.element_size()`` bytes (one read, one write per element).
 Both frameworks are kept on purpose: the copy is the bandwidth each framework reaches on a device.
+
+Each thread moves 16 bytes (a 4-vector) when the length allows: with one float per thread the
+kernels reached only 1.55-1.63 TB/s (34 % of 4.8 TB/s) on an H200 for 2x256 MiB, while torch's
+vectorised copy reached 3.5 TB/s; HBM needs more bytes in flight per thread than a scalar load.
 """
 
 
@@ -20,6 +24,15 @@ def _copy_ti(src: ti.types.ndarray(dtype=ti.f32, ndim=1), dst: ti.types.ndarray(
         dst[i] = src[i]
 
 
+@ti.kernel
+def _copy4_ti(
+    src: ti.types.ndarray(dtype=ti.types.vector(4, ti.f32), ndim=1),
+    dst: ti.types.ndarray(dtype=ti.types.vector(4, ti.f32), ndim=1),
+):
+    for i in src:
+        dst[i] = src[i]
+
+
 def copy_taichi(src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
     """Copy ``src`` into ``dst`` with a Taichi kernel.
 
@@ -31,7 +44,10 @@ def copy_taichi(src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
         ``dst``.
     """
     _check_pair(src, dst)
-    _copy_ti(backend.taichi_arg(src), backend.taichi_arg(dst))
+    if src.numel() % 4 == 0:
+        _copy4_ti(backend.taichi_arg(src.view(-1, 4)), backend.taichi_arg(dst.view(-1, 4)))
+    else:
+        _copy_ti(backend.taichi_arg(src), backend.taichi_arg(dst))
     return dst
 
 
@@ -41,15 +57,20 @@ def _copy_wp(src: wp.array(dtype=wp.float32), dst: wp.array(dtype=wp.float32)):
     dst[i] = src[i]
 
 
+@wp.kernel
+def _copy4_wp(src: wp.array(dtype=wp.vec4), dst: wp.array(dtype=wp.vec4)):
+    i = wp.tid()
+    dst[i] = src[i]
+
+
 def copy_warp(src: torch.Tensor, dst: torch.Tensor) -> torch.Tensor:
     """Copy ``src`` into ``dst`` with a Warp kernel (arguments as :func:`copy_taichi`)."""
     _check_pair(src, dst)
-    wp.launch(
-        _copy_wp,
-        dim=src.numel(),
-        inputs=[backend.to_warp(src), backend.to_warp(dst)],
-        device=backend.warp_device(),
-    )
+    if src.numel() % 4 == 0:
+        kernel, inputs = _copy4_wp, [backend.to_warp(t.view(-1, 4), dtype=wp.vec4) for t in (src, dst)]
+    else:
+        kernel, inputs = _copy_wp, [backend.to_warp(src), backend.to_warp(dst)]
+    wp.launch(kernel, dim=inputs[0].shape[0], inputs=inputs, device=backend.warp_device())
     return dst
 
 

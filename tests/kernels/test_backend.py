@@ -35,8 +35,9 @@ def test_taichi_and_warp_share_one_tensor(device):
 
 
 @pytest.mark.parametrize("copy", [copy_taichi, copy_warp])
-def test_copy_kernels_match_reference(device, copy):
-    src = torch.randn(12345, device=backend.torch_device())
+@pytest.mark.parametrize("length", [12345, 4096])  # scalar and 4-vector paths
+def test_copy_kernels_match_reference(device, copy, length):
+    src = torch.randn(length, device=backend.torch_device())
     dst = torch.zeros_like(src)
     copy(src, dst)
     backend.synchronize()

@@ -1,0 +1,58 @@
+"""Reference of :mod:`kernels.hyperelastic`: energies written from F's invariants and polar
+decomposition, differentiated by torch autograd; the PSD projection by a 9×9 eigen-decomposition."""
+
+from __future__ import annotations
+
+import torch
+
+from kernels.hyperelastic import MaterialModel
+
+__all__ = ["energy_density", "material_response"]
+
+
+def _rotation(F: torch.Tensor) -> torch.Tensor:
+    """The rotation R = F (FᵀF)^(-1/2) of the polar decomposition F = R S, for det F > 0.
+
+    Written through a symmetric eigen-decomposition, which (unlike an SVD) torch differentiates
+    twice for distinct eigenvalues.
+    """
+    w, Q = torch.linalg.eigh(F.T @ F)
+    return F @ Q @ torch.diag(w.rsqrt()) @ Q.T
+
+
+def energy_density(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel) -> torch.Tensor:
+    """Ψ(F) for one 3×3 F (Neo-Hookean: PIE-NeRF Eq. 22)."""
+    J = torch.det(F)
+    if model == MaterialModel.NEO_HOOKEAN:
+        logJ = torch.log(J)
+        return 0.5 * mu * ((F * F).sum() - 3.0) - mu * logJ + 0.5 * lam * logJ**2
+    if model == MaterialModel.STVK:
+        E = 0.5 * (F.T @ F - torch.eye(3, dtype=F.dtype, device=F.device))
+        return mu * (E * E).sum() + 0.5 * lam * torch.trace(E) ** 2
+    corotated = mu * ((F - _rotation(F)) ** 2).sum()
+    if model == MaterialModel.ARAP:
+        return corotated
+    return corotated + 0.5 * lam * (J - 1.0) ** 2
+
+
+def material_response(
+    F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel, project: bool = True
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Same contract as :func:`kernels.hyperelastic.material_response`, one point at a time."""
+    mu = mu.to(F).expand(F.shape[0])
+    lam = lam.to(F).expand(F.shape[0])
+    psi, P, dPdF = [], [], []
+    for Fm, m, l in zip(F, mu, lam, strict=True):
+        def energy(x, m=m, l=l):
+            return energy_density(x.reshape(3, 3), m, l, model)
+
+        x = Fm.reshape(9)
+        psi.append(energy(x))
+        P.append(torch.func.grad(energy)(x).reshape(3, 3))
+        H = torch.func.hessian(energy)(x)
+        H = 0.5 * (H + H.T)
+        if project:
+            w, Q = torch.linalg.eigh(H)
+            H = Q @ torch.diag(w.clamp(min=0)) @ Q.T
+        dPdF.append(H)
+    return torch.stack(psi), torch.stack(P), torch.stack(dPdF)
