@@ -1,0 +1,140 @@
+"""Integrator-point (IP) integration of the elastic energy, its gradient and its Hessian in the
+generalized coordinates q of Q-GMLS (PIE-NeRF §4.4–4.5, Eq. 12–17).
+
+Each IP k carries a cuboid Ω_k with quadrature points h_g and volumes w_kg (Eq. 13). With
+F(h) = F_k + ∇F_k·h (Eq. 14) and F = I + Σ_s q_s ⊗ ∇N_s (Eq. 12, 15), the deformation gradient at a
+quadrature point is F_kg = I + Σ_s q_s ⊗ D_kgs where D_kgs = ∇N_s(x_k) + ∇²N_s(x_k) h_g is
+precomputed once. Then (Eq. 16–17)
+
+    U    = Σ_kg w_kg Ψ(F_kg)
+    ∂U/∂q_s,a      = Σ_kg w_kg Σ_b P_ab(F_kg) D_kgs,b
+    ∂²U/∂q_s,a∂q_t,f = Σ_kg w_kg Σ_bd D_kgs,b (∂P_ab/∂F_fd) D_kgt,d
+
+Each IP only touches the S shape functions whose kernels cover it, so its Hessian is a dense
+[S·3, S·3] block. The material response (SVD, stress, eigen-projected ∂P/∂F) runs in the Warp
+kernel of :mod:`kernels.hyperelastic`; the contractions above are batched matrix products in torch
+(cuBLAS/MKL run them near peak; a hand-written Warp loop was not faster) and the blocks are
+scatter-added into the dense [3nT, 3nT] Hessian by precomputed block indices. Projecting every
+quadrature point's ∂P/∂F to PSD makes every IP's Hessian block PSD.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from kernels.hyperelastic import MaterialModel, material_response
+
+__all__ = ["IPIntegral", "IPIntegrator"]
+
+
+@dataclass
+class IPIntegral:
+    """Result of :meth:`IPIntegrator.evaluate`.
+
+    Attributes:
+        energy: total elastic energy U (J), a 0-d tensor.
+        ip_energy: energy of each IP ``[K]`` (J).
+        min_det: smallest det F over all quadrature points (a 0-d tensor).
+        gradient: ∂U/∂q ``[nT, 3]`` (N, or N·m for derivative DOFs), or ``None``.
+        hessian: ∂²U/∂q² ``[nT*3, nT*3]``, or ``None``.
+    """
+
+    energy: torch.Tensor
+    ip_energy: torch.Tensor
+    min_det: torch.Tensor
+    gradient: torch.Tensor | None = None
+    hessian: torch.Tensor | None = None
+
+
+class IPIntegrator:
+    """Precomputed IP quadrature of a Q-GMLS body; evaluates U, ∂U/∂q and ∂²U/∂q² for any q.
+
+    Args:
+        index: active shape indices of each IP ``[K, S]`` (int64, −1 where padded).
+        shape_grad: D_kgs of the module docstring ``[K, G, S, 3]`` (1/m; zeros where padded).
+        weight: quadrature volumes ``[K, G]`` (m³).
+        shape_count: number of shape functions nT (the DOFs are ``[nT, 3]``).
+        mu: first Lamé parameter per IP ``[K]`` or a scalar (Pa).
+        lam: second Lamé parameter per IP ``[K]`` or a scalar (Pa).
+        model: the energy density.
+    """
+
+    def __init__(
+        self,
+        index: torch.Tensor,
+        shape_grad: torch.Tensor,
+        weight: torch.Tensor,
+        shape_count: int,
+        mu: torch.Tensor | float,
+        lam: torch.Tensor | float,
+        model: MaterialModel,
+    ):
+        K, G, S, _ = shape_grad.shape
+        if index.shape != (K, S) or weight.shape != (K, G):
+            raise ValueError(
+                f"IPIntegrator: index {tuple(index.shape)}, shape_grad {tuple(shape_grad.shape)} and weight "
+                f"{tuple(weight.shape)} disagree; expected [K, S], [K, G, S, 3], [K, G]"
+            )
+        self.shape_count = shape_count
+        self.model = MaterialModel(model)
+        valid = index >= 0
+        self.index = torch.where(valid, index, torch.zeros_like(index))
+        self.shape_grad = (shape_grad * valid[:, None, :, None]).to(torch.float64).contiguous()
+        self.weight = weight.to(torch.float64)
+        self.set_material(mu, lam)
+        # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]; padded entries
+        # carry zero derivatives, so their contributions to block (0, 0) vanish.
+        self.block_index = (self.index[:, :, None] * shape_count + self.index[:, None, :]).reshape(-1)
+        self.eye = torch.eye(3, dtype=torch.float64, device=shape_grad.device)
+
+    def set_material(self, mu: torch.Tensor | float, lam: torch.Tensor | float) -> None:
+        """Change the Lamé parameters (Pa), per IP ``[K]`` or scalars."""
+        K, G = self.weight.shape
+        device = self.weight.device
+        self.mu = torch.as_tensor(mu, dtype=torch.float64, device=device).expand(K).repeat_interleave(G)
+        self.lam = torch.as_tensor(lam, dtype=torch.float64, device=device).expand(K).repeat_interleave(G)
+
+    def deformation_gradient(self, q: torch.Tensor) -> torch.Tensor:
+        """F at every quadrature point ``[K, G, 3, 3]`` (Eq. 12 with Eq. 14)."""
+        return self.eye + torch.einsum("ksa,kgsb->kgab", q[self.index], self.shape_grad)
+
+    def evaluate(
+        self, q: torch.Tensor, gradient: bool = True, hessian: bool = True, project: bool = True
+    ) -> IPIntegral:
+        """Energy, gradient and Hessian at ``q [nT, 3]`` (float64).
+
+        Args:
+            q: generalized coordinates ``[nT, 3]``.
+            gradient: compute ∂U/∂q.
+            hessian: compute ∂²U/∂q² (implies the material Hessian).
+            project: clamp each quadrature point's ∂P/∂F at zero (PSD Hessian).
+        """
+        K, G, S, _ = self.shape_grad.shape
+        F = self.deformation_gradient(q)
+        psi, P, dPdF = material_response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project)
+        ip_energy = (self.weight * psi.view(K, G)).sum(1)
+        result = IPIntegral(ip_energy.sum(), ip_energy, torch.linalg.det(F).min())
+        if gradient or hessian:
+            wP = self.weight[..., None, None] * P.view(K, G, 3, 3)
+            local = torch.einsum("kgsb,kgab->ksa", self.shape_grad, wP)
+            result.gradient = torch.zeros(self.shape_count, 3, dtype=torch.float64, device=q.device)
+            result.gradient.index_add_(0, self.index.reshape(-1), local.reshape(-1, 3))
+        if hessian:
+            wA = (self.weight[..., None, None] * dPdF.view(K, G, 9, 9)).view(K, G, 3, 3, 3, 3)
+            # C_kgt[a, b, f] = Σ_d wA[a, b, f, d] D_kgt,d ; H_k[s, t, a, f] = Σ_gb D_kgs,b C_kgt[a, b, f]
+            C = torch.einsum("kgabfd,kgtd->kgbtaf", wA, self.shape_grad)
+            blocks = torch.bmm(
+                self.shape_grad.permute(0, 2, 1, 3).reshape(K, S, G * 3), C.reshape(K, G * 3, S * 9)
+            )
+            result.hessian = self.assemble_blocks(blocks.reshape(-1, 9), self.block_index)
+        return result
+
+    def assemble_blocks(self, blocks: torch.Tensor, block_index: torch.Tensor) -> torch.Tensor:
+        """Sum 3×3 blocks ``[B, 9]`` (row-major a, f) at block positions ``[B]`` (s·nT + t) into a
+        dense ``[nT*3, nT*3]`` matrix indexed by (3s + a, 3t + f)."""
+        n = self.shape_count
+        dense = torch.zeros(n * n, 9, dtype=torch.float64, device=blocks.device)
+        dense.index_add_(0, block_index, blocks)
+        return dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
