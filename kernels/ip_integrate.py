@@ -13,7 +13,7 @@ precomputed once. Then (Eq. 16–17)
 Each IP only touches the S shape functions whose kernels cover it, so its Hessian is a dense
 [S·3, S·3] block. The material response (SVD, stress, eigen-projected ∂P/∂F) runs in the Warp
 kernel of :mod:`kernels.hyperelastic`; the contractions above are batched matrix products in torch
-(cuBLAS/MKL run them near peak; a hand-written Warp loop was not faster) and the blocks are
+(cuBLAS/MKL run them near their peak) and the blocks are
 scatter-added into the dense [3nT, 3nT] Hessian by precomputed block indices. Projecting every
 quadrature point's ∂P/∂F to PSD makes every IP's Hessian block PSD.
 """

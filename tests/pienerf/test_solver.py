@@ -1,0 +1,140 @@
+import math
+
+import pytest
+import torch
+
+from kernels import backend
+from pienerf.materials import Material
+from pienerf.model import DiscretizationConfig, QGMLSModel
+from pienerf.solver import (
+    ControlQGMLS,
+    PlaneCollider,
+    PointTargets,
+    SolverConfig,
+    SolverQGMLS,
+)
+
+
+def grid_particles(size, spacing):
+    """Cell-centred lattice filling the box [0, size]: positions [P, 3] and volumes [P]."""
+    axes = [torch.arange(0.5 * spacing, s, spacing, dtype=torch.float64) for s in size]
+    position = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    return position, torch.full((position.shape[0],), spacing**3, dtype=torch.float64)
+
+
+_MODELS = {}
+
+
+def box_model(device, kernels=16):
+    key = (device, kernels)
+    if key not in _MODELS:
+        position, volume = grid_particles((0.4, 0.2, 0.2), 0.05)
+        _MODELS[key] = QGMLSModel(position, volume, DiscretizationConfig(kernel_count=kernels), device=device)
+    return _MODELS[key]
+
+
+def momentum(solver, qd):
+    """Linear momentum Σ ∫ρ v dΩ = t_aᵀ M q̇ for the unit translations t_a (N·s)."""
+    model = solver.model
+    return torch.stack([(model.translation(torch.eye(3)[a]) * (solver.mass @ qd)).sum() for a in range(3)])
+
+
+def test_free_fall_follows_the_discrete_implicit_euler_trajectory(device):
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(young_modulus=2e5), SolverConfig(newton_iterations=4))
+    state, h, g = solver.rest_state(), 1e-2, -9.81
+    rest_centre = model.particles.positions(state.q).mean(0)
+    for n in range(1, 9):
+        solver.step(state, state, ControlQGMLS(), h)
+        drop = (model.particles.positions(state.q).mean(0) - rest_centre)[1].item()
+        assert drop == pytest.approx(g * h * h * n * (n + 1) / 2, rel=1e-6)
+    F = model.particle_deformation_gradient(state.q)
+    assert (F - torch.eye(3, dtype=F.dtype, device=F.device)).abs().max().item() < 1e-9  # stays at rest shape
+
+
+def test_linear_momentum_is_conserved_without_external_force(device):
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(gravity=(0, 0, 0), newton_iterations=6))
+    state = solver.rest_state()
+    generator = torch.Generator().manual_seed(0)
+    state.qd.copy_(0.3 * torch.randn(state.qd.shape, generator=generator, dtype=torch.float64))
+    start = momentum(solver, state.qd)
+    assert start.abs().max().item() > 1e-3
+    for _ in range(10):
+        report = solver.step(state, state, ControlQGMLS(), 5e-3)
+        assert math.isfinite(report.energy) and report.min_det > 0
+    torch.testing.assert_close(momentum(solver, state.qd), start, rtol=1e-8, atol=1e-10)
+
+
+def test_released_drag_decays_with_damping(device):
+    model = box_model(backend.torch_device())
+    config = SolverConfig(gravity=(0, 0, 0), rayleigh_alpha=8.0, rayleigh_beta=0.005, newton_iterations=5)
+    solver = SolverQGMLS(model, Material(young_modulus=5e4), config)
+    state = solver.rest_state()
+    corner = model.handle(torch.tensor([[0.375, 0.175, 0.175]]))
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    pin_springs = PointTargets(pin, pin.rest.clone(), 1e5)
+    drag = PointTargets(corner, corner.rest + torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64), 2e3)
+    for _ in range(10):
+        solver.step(state, state, ControlQGMLS(springs=[pin_springs, drag]), 1e-2)
+    pulled = corner.positions(state.q)[0, 1].item() - corner.rest[0, 1].item()
+    assert pulled > 0.02
+
+    def mechanical_energy():
+        kinetic = 0.5 * (state.qd * (solver.mass @ state.qd)).sum()
+        elastic = solver.integrator.evaluate(state.q, gradient=False, hessian=False).energy
+        return (kinetic + elastic + solver._spring_terms([pin_springs], state.q, False)[0]).item()
+
+    energies = [mechanical_energy()]
+    for _ in range(30):
+        solver.step(state, state, ControlQGMLS(springs=[pin_springs]), 1e-2)
+        energies.append(mechanical_energy())
+    assert all(b <= a * (1 + 1e-9) for a, b in zip(energies, energies[1:], strict=False))  # dissipates every step
+    assert energies[-1] < 0.4 * energies[0]
+
+
+def test_floor_stops_a_falling_body(device):
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(young_modulus=1e5), SolverConfig(newton_iterations=6, rayleigh_alpha=5.0))
+    state = solver.rest_state()
+    floor = PlaneCollider(point=(0.0, -0.05, 0.0), normal=(0.0, 1.0, 0.0))
+    for _ in range(60):
+        report = solver.step(state, state, ControlQGMLS(colliders=[floor]), 1e-2)
+        assert report.min_det > 0
+    lowest = model.particles.positions(state.q)[:, 1].min().item()
+    assert -0.06 < lowest < -0.045  # resting on the floor up to the penalty's compliance
+    particle_velocity = model.particles.positions(state.qd) - model.particles.rest  # J q̇
+    assert particle_velocity.abs().max().item() < 0.05
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"young_modulus": 0.0}, "Young's modulus must be > 0"),
+        ({"young_modulus": -5.0}, "Young's modulus must be > 0"),
+        ({"poisson_ratio": 0.5}, "Poisson ratio must lie in"),
+        ({"poisson_ratio": -1.0}, "Poisson ratio must lie in"),
+        ({"density": float("nan")}, "finite"),
+        ({"model": "rubber"}, "unknown material model 'rubber'; valid: neo_hookean"),
+    ],
+)
+def test_bad_material_is_refused_clearly(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        Material(**kwargs)
+
+
+def test_bad_solver_config_and_model_inputs(device):
+    with pytest.raises(ValueError, match="finite"):
+        SolverConfig(gravity=(0.0, float("nan"), 0.0))
+    position, volume = grid_particles((0.1, 0.1, 0.1), 0.05)
+    with pytest.raises(ValueError, match="exceeds the particle count"):
+        QGMLSModel(position, volume, DiscretizationConfig(kernel_count=100))
+    with pytest.raises(ValueError, match="no particles"):
+        QGMLSModel(position[:0], volume[:0])
+    position[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="finite"):
+        QGMLSModel(position, volume, DiscretizationConfig(kernel_count=2))
+    solver = SolverQGMLS(box_model(backend.torch_device()), Material())
+    state = solver.rest_state()
+    with pytest.raises(ValueError, match="dt must be"):
+        solver.step(state, state, ControlQGMLS(), 0.0)
