@@ -29,7 +29,8 @@ class DiscretizationConfig:
     Attributes:
         kernel_count: number of Q-GMLS kernels n (30 DOF each).
         ip_count: number of integrator points K (kernel IPs included); ``None`` → 2n.
-        order: ``"quadratic"`` (Q-GMLS) or ``"affine"`` (classical MLS, for comparison).
+        order: ``"quadratic"`` (Q-GMLS), ``"linear"`` (first-order GMLS) or ``"affine"`` (classical MLS);
+            the last two for comparison (locking, Fig. 8).
         quadrature_points_per_axis: Gauss points per cuboid axis g (g³ per IP; module
             :func:`pienerf.integrator_points.cuboid_quadrature` gives the exactness).
         mass_quadrature: ``"cuboid"`` (full rank) or ``"ip"`` (Eq. 11 as written, one point per IP).
@@ -39,6 +40,8 @@ class DiscretizationConfig:
         support_scale: scale of the support-radius rule.
         cuboid_neighbours: particles per IP covariance (§4.4).
         user_kernels: rest positions (m) of kernels the user places (Fig. 5, right).
+        cuts: :class:`pienerf.cut.CutPlane` or :class:`pienerf.cut.CutMask` objects; kernels do not
+            influence points across a cut, so the pieces separate (Fig. 7).
     """
 
     kernel_count: int = 32
@@ -52,6 +55,14 @@ class DiscretizationConfig:
     support_scale: float = 1.3
     cuboid_neighbours: int = 16
     user_kernels: tuple[tuple[float, float, float], ...] = field(default_factory=tuple)
+    cuts: tuple = field(default_factory=tuple)
+
+    def visibility(self, x: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+        """``[M, n]`` kernels visible from each point through every cut (all True without cuts)."""
+        visible = torch.ones(x.shape[0], centres.shape[0], dtype=torch.bool, device=x.device)
+        for cut in self.cuts:
+            visible &= cut.visibility(x, centres)
+        return visible
 
 
 @dataclass(frozen=True)
@@ -114,7 +125,10 @@ class QGMLSModel:
             lloyd_iterations=config.kernel_lloyd_iterations,
             neighbours=config.support_neighbours, support_scale=config.support_scale,
         )
-        self.basis = QGMLSBasis(self.kernels.centres, self.kernels.support_radius, order=config.order)
+        self.basis = QGMLSBasis(
+            self.kernels.centres, self.kernels.support_radius, order=config.order,
+            visibility=config.visibility if config.cuts else None,
+        )
         ip_count = min(config.ip_count or 2 * n, position.shape[0])
         self.ips: IntegratorPoints = place_integrator_points(
             position, volume, self.kernels.centres, max(ip_count, n),

@@ -48,6 +48,7 @@ import torch
 
 __all__ = [
     "AFFINE_TERMS",
+    "LINEAR_TERMS",
     "ORDERS",
     "QUADRATIC_TERMS",
     "QGMLSBasis",
@@ -66,9 +67,13 @@ QUADRATIC_TERMS = ("value", "dx", "dy", "dz", "dxx", "dxy", "dxz", "dyy", "dyz",
 AFFINE_TERMS = ("value",)
 """The single DOF term of a classical affine MLS kernel."""
 
-ORDERS = ("quadratic", "affine")
+LINEAR_TERMS = ("value", "dx", "dy", "dz")
+"""The ``T = 4`` DOF terms of a linear GMLS kernel (affine basis with first-derivative terms)."""
 
-_TERM_ORDER = {"quadratic": (0, 1, 1, 1, 2, 2, 2, 2, 2, 2), "affine": (0,)}
+ORDERS = ("quadratic", "linear", "affine")
+
+_TERM_ORDER = {"quadratic": (0, 1, 1, 1, 2, 2, 2, 2, 2, 2), "linear": (0, 1, 1, 1), "affine": (0,)}
+_TERM_NAMES = {"quadratic": QUADRATIC_TERMS, "linear": LINEAR_TERMS, "affine": AFFINE_TERMS}
 _SECOND_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _SECOND_ROWS = ((4, 5, 6), (5, 7, 8), (6, 8, 9))  # quadratic term row of ∂_jk, by (j, k)
 _RCOND_MIN = 1e-10
@@ -116,20 +121,24 @@ def polynomial_terms(y: torch.Tensor, order: str = "quadratic") -> torch.Tensor:
 
     Quadratic basis (10 monomials): ``p = [1, x, y, z, x², xy, xz, y², yz, z²]``; the rows are
     ``[p, p_,x, p_,y, p_,z, p_,xx, p_,xy, p_,xz, p_,yy, p_,yz, p_,zz]`` with ``p_,jk = ∂²p/∂x_j∂x_k``
-    (see the module docstring for why the mixed rows are not doubled). Affine basis: the single row
+    (see the module docstring for why the mixed rows are not doubled). Linear basis: ``p = [1, x, y, z]``
+    with rows ``[p, p_,x, p_,y, p_,z]`` (generalised MLS of first order). Affine basis: the single row
     ``p = [1, x, y, z]`` (classical MLS, no derivative terms).
 
     Args:
         y: ``[..., 3]`` coordinates.
-        order: ``"quadratic"`` or ``"affine"``.
+        order: ``"quadratic"``, ``"linear"`` or ``"affine"``.
 
     Returns:
-        ``[..., T, P]``: ``T = 10, P = 10`` (quadratic) or ``T = 1, P = 4`` (affine).
+        ``[..., T, P]``: ``T = 10, P = 10`` (quadratic), ``T = 4, P = 4`` (linear) or ``T = 1, P = 4`` (affine).
     """
     x0, x1, x2 = y.unbind(-1)
     one, zero = torch.ones_like(x0), torch.zeros_like(x0)
     if order == "affine":
         return torch.stack([one, x0, x1, x2], -1).unsqueeze(-2)
+    if order == "linear":
+        rows = [[one, x0, x1, x2], [zero, one, zero, zero], [zero, zero, one, zero], [zero, zero, zero, one]]
+        return torch.stack([torch.stack(row, -1) for row in rows], -2)
     if order != "quadratic":
         raise ValueError(f"unknown order {order!r}; valid orders: {', '.join(ORDERS)}")
     two = 2.0 * one
@@ -308,12 +317,19 @@ class QGMLSBasis:
         centres: ``[n, 3]`` kernel centres ``x_i`` at rest (length).
         support_radius: ``[n]`` support radius ``ρ_i`` of each kernel (length), e.g. from
             :func:`support_radii`.
-        order: ``"quadratic"`` (Q-GMLS, 10 terms and 30 DOF per kernel) or ``"affine"`` (classical
-            MLS with ``p = [1, x, y, z]``, no derivative terms, 1 term and 3 DOF per kernel; its ``G``
-            is singular where the centres in a support are coplanar).
+        order: ``"quadratic"`` (Q-GMLS, 10 terms and 30 DOF per kernel), ``"linear"`` (generalised MLS
+            of first order: affine basis with value and first-derivative terms, 4 terms and 12 DOF per
+            kernel; invertible for colinear centres but, like any linear interpolant, prone to locking
+            in bending) or ``"affine"`` (classical MLS with ``p = [1, x, y, z]``, no derivative terms,
+            1 term and 3 DOF per kernel; its ``G`` is singular where the centres in a support are coplanar).
+        visibility: optional ``(x [M, 3], centres [n, 3]) -> [M, n]`` bool mask of the kernels that may
+            influence each point, e.g. :meth:`pienerf.cut.Cut.visibility`; masked kernels are treated
+            as outside their support, so a cut separates the pieces on its two sides (§5, Fig. 7).
     """
 
-    def __init__(self, centres: torch.Tensor, support_radius: torch.Tensor, order: str = "quadratic"):
+    def __init__(
+        self, centres: torch.Tensor, support_radius: torch.Tensor, order: str = "quadratic", visibility=None
+    ):
         if order not in ORDERS:
             raise ValueError(f"unknown order {order!r}; valid orders: {', '.join(ORDERS)}")
         centres = _as_points(centres, "centres")
@@ -329,7 +345,8 @@ class QGMLSBasis:
         self.centres = centres
         self.support_radius = support_radius
         self.order = order
-        self.term_names = QUADRATIC_TERMS if order == "quadratic" else AFFINE_TERMS
+        self.term_names = _TERM_NAMES[order]
+        self.visibility = visibility
         self._term_derivative_order = torch.tensor(_TERM_ORDER[order], dtype=torch.float64, device=centres.device)
         # Jet of the basis p(x − c) at x = c (value, ∂_j, ∂_jk rows), for the basis of this order.
         origin = torch.zeros(3, dtype=torch.float64, device=centres.device)
@@ -460,7 +477,7 @@ class QGMLSBasis:
             if gradient.shape != (n, 3, 3):
                 raise ValueError(f"gradient must be [n, 3, 3] = [{n}, 3, 3], got {tuple(gradient.shape)}")
             q[:, 1:4] = gradient.transpose(1, 2)
-        if hessian is not None:
+        if hessian is not None and self.order == "quadratic":
             hessian = torch.as_tensor(hessian, dtype=torch.float64, device=q.device)
             if hessian.shape != (n, 3, 3, 3):
                 raise ValueError(f"hessian must be [n, 3, 3, 3] = [{n}, 3, 3, 3], got {tuple(hessian.shape)}")
@@ -490,6 +507,8 @@ class QGMLSBasis:
         kernels, actives = [], []
         for chunk in x.split(_CHUNK):
             ratio = torch.cdist(chunk, self.centres, compute_mode=_EXACT) / self.support_radius
+            if self.visibility is not None:
+                ratio = torch.where(self.visibility(chunk, self.centres), ratio, torch.inf)
             count = int((ratio < 1.0).sum(1).max())
             nearest = ratio.topk(max(count, 1), dim=1, largest=False)
             kernels.append(nearest.indices)
@@ -502,6 +521,7 @@ class QGMLSBasis:
             raise ValueError(
                 f"{uncovered} of {x.shape[0]} points lie outside the support of every kernel; "
                 "use larger support radii (support_radii(centres, points) with these points) or more kernels"
+                + ("; a cut may leave a piece without a kernel: place one there" if self.visibility else "")
             )
         return kernel, active
 

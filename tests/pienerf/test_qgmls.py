@@ -249,3 +249,38 @@ def test_bad_input_raises_clear_errors(device):
         basis.evaluate(points[:, :2])
     with pytest.raises(ValueError, match="derivatives must be"):
         basis.evaluate(points, derivatives=3)
+
+
+@pytest.mark.parametrize("layout", ["coplanar", "colinear"])
+def test_linear_gmls_reproduces_affine_fields_with_degenerate_centres(device, layout):
+    centres, radius, points = _layout(layout)
+    basis = QGMLSBasis(centres, radius, order="linear")
+    assert basis.terms == 4 and basis.dof_count == 12 * centres.shape[0]
+    b = _on(torch.randn(3, 3, generator=_generator(4), dtype=F64))
+    gradient = b.expand(centres.shape[0], 3, 3)
+    q = basis.dof_from_field(centres @ b.T + 1.0, gradient)
+    assert torch.allclose(basis.displacement(q, points), points @ b.T + 1.0, rtol=0.0, atol=1e-9)
+    value, grad, hess = _quadratic_field(seed=1)
+    u = basis.displacement(basis.dof_from_field(value(centres), grad(centres), hess(centres)), points)
+    assert (u - value(points)).abs().max() > 1e-3 * value(points).abs().max()  # first order only
+
+
+def test_cut_plane_hides_kernels_across_it(device):
+    from pienerf.cut import CutMask, CutPlane
+
+    centres = _on(torch.tensor([[0.2, 0.0, 0.0], [0.8, 0.0, 0.0]], dtype=F64))
+    points = _on(torch.tensor([[0.4, 0.0, 0.0], [0.6, 0.0, 0.0], [0.6, 0.9, 0.0]], dtype=F64))
+    plane = CutPlane((0.5, 0.0, 0.0), (1.0, 0.0, 0.0))
+    expected = torch.tensor([[True, False], [False, True], [False, True]], device=points.device)
+    assert torch.equal(plane.visibility(points, centres), expected)
+    disc = CutPlane((0.5, 0.0, 0.0), (1.0, 0.0, 0.0), radius=0.3)  # the segment from the third point passes above
+    assert torch.equal(disc.visibility(points, centres)[2], torch.tensor([True, True], device=points.device))
+    labels = CutMask(points[:2], torch.tensor([0, 1]))
+    assert torch.equal(labels.visibility(points[:2], centres), expected[:2])
+    basis = QGMLSBasis(centres, _on(torch.tensor([1.0, 1.0], dtype=F64)), visibility=plane.visibility)
+    shape = basis.evaluate(points[:2], derivatives=0)
+    kernel_of = shape.index // basis.terms
+    assert set(kernel_of[0][shape.value[0] != 0].tolist()) == {0}
+    assert set(kernel_of[1][shape.value[1] != 0].tolist()) == {1}
+    with pytest.raises(ValueError, match="finite point"):
+        CutPlane((0.0, float("nan"), 0.0), (1.0, 0.0, 0.0))
