@@ -59,6 +59,8 @@ class IPIntegrator:
         mu: first Lamé parameter per IP ``[K]`` or a scalar (Pa).
         lam: second Lamé parameter per IP ``[K]`` or a scalar (Pa).
         model: the energy density.
+        response: the material-point function, :func:`kernels.hyperelastic.material_response` (the
+            Warp kernel) unless a reference is swapped in for comparison.
     """
 
     def __init__(
@@ -70,6 +72,7 @@ class IPIntegrator:
         mu: torch.Tensor | float,
         lam: torch.Tensor | float,
         model: MaterialModel,
+        response=material_response,
     ):
         K, G, S, _ = shape_grad.shape
         if index.shape != (K, S) or weight.shape != (K, G):
@@ -79,6 +82,7 @@ class IPIntegrator:
             )
         self.shape_count = shape_count
         self.model = MaterialModel(model)
+        self.response = response
         valid = index >= 0
         self.index = torch.where(valid, index, torch.zeros_like(index))
         self.shape_grad = (shape_grad * valid[:, None, :, None]).to(torch.float64).contiguous()
@@ -113,7 +117,7 @@ class IPIntegrator:
         """
         K, G, S, _ = self.shape_grad.shape
         F = self.deformation_gradient(q)
-        psi, P, dPdF = material_response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project)
+        psi, P, dPdF = self.response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project)
         ip_energy = (self.weight * psi.view(K, G)).sum(1)
         result = IPIntegral(ip_energy.sum(), ip_energy, torch.linalg.det(F).min())
         if gradient or hessian:

@@ -72,3 +72,12 @@ def test_inverted_neo_hookean_point_has_infinite_energy(device):
 def test_rejects_float32(device):
     with pytest.raises(ValueError, match="float64"):
         material_response(torch.eye(3).unsqueeze(0), torch.tensor(1.0), torch.tensor(1.0), MaterialModel.ARAP)
+
+
+@pytest.mark.parametrize("model", MODELS, ids=lambda m: m.name.lower())
+def test_batched_reference_matches_kernel(device, model):
+    F = _random_F(16, 0.25, seed=4)
+    mu, lam = torch.tensor(2.0, dtype=torch.float64), torch.tensor(3.0, dtype=torch.float64)
+    expected = material_response(F.to(backend.torch_device()), mu, lam, model, project=True)
+    for got, want in zip(reference.material_response_batched(F, mu, lam, model, project=True), expected, strict=True):
+        torch.testing.assert_close(got, want.cpu(), rtol=1e-7, atol=1e-7)
