@@ -1,0 +1,35 @@
+import json
+
+import imageio.v3 as iio
+import pytest
+import torch
+
+from kernels import backend
+from pienerf.materials import Material
+from pienerf.reports import TimeBreakdown, VolumeHistory, plot_time_breakdown, plot_volume_bars
+from pienerf.solver import ControlQGMLS, SolverConfig, SolverQGMLS
+from tests.pienerf.test_solver import box_model
+
+
+def test_time_breakdown_and_volume_reports_are_written(device, tmp_path):
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(), SolverConfig(newton_iterations=2))
+    state, breakdown = solver.rest_state(), TimeBreakdown()
+    history = VolumeHistory(rest_volume=float(model.volume.sum()))
+    for i in range(3):
+        breakdown.add(solver.step(state, state, ControlQGMLS(), 1e-2))
+        history.add(f"step {i}", float(model.deformed_volume(state.q)))
+    breakdown.add_phase("warping", 0.001)
+    assert breakdown.steps == 3 and breakdown.newton_iterations >= 3
+    assert sum(breakdown.fractions().values()) == pytest.approx(1.0)
+    pie = plot_time_breakdown(breakdown, tmp_path / "breakdown.png")
+    data = json.loads(pie.with_suffix(".json").read_text())
+    assert data["steps"] == 3 and data["seconds"]["solve"] > 0
+    assert iio.imread(pie).shape[2] in (3, 4)
+    assert history.relative() == pytest.approx([1.0, 1.0, 1.0], abs=1e-9)  # free fall keeps the volume
+    squashed = VolumeHistory(1.0, ["10%", "40%"], [0.9, 0.6])
+    bars = plot_volume_bars([("free fall", VolumeHistory(1.0, ["10%", "40%"], [1.0, 1.0])), ("arap", squashed)],
+                            tmp_path / "volume.png")
+    assert json.loads(bars.with_suffix(".json").read_text())["arap"]["relative_volume"] == [0.9, 0.6]
+    assert iio.imread(bars).ndim == 3
+    assert torch.isfinite(state.q).all()
