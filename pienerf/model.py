@@ -3,6 +3,7 @@ shape functions, quadrature and mass (PIE-NeRF §4.2–4.4). Built once; the sol
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -17,7 +18,7 @@ from pienerf.integrator_points import (
     place_kernels,
 )
 from pienerf.materials import Material
-from pienerf.qgmls import QGMLSBasis, ShapeValues
+from pienerf.qgmls import ORDERS, QGMLSBasis, ShapeValues
 
 __all__ = ["DiscretizationConfig", "PointHandle", "QGMLSModel"]
 
@@ -56,6 +57,31 @@ class DiscretizationConfig:
     cuboid_neighbours: int = 16
     user_kernels: tuple[tuple[float, float, float], ...] = field(default_factory=tuple)
     cuts: tuple = field(default_factory=tuple)
+
+    def __post_init__(self):
+        counts = {
+            "kernel_count": self.kernel_count, "quadrature_points_per_axis": self.quadrature_points_per_axis,
+            "kernel_lloyd_iterations": self.kernel_lloyd_iterations, "ip_lloyd_iterations": self.ip_lloyd_iterations,
+            "support_neighbours": self.support_neighbours, "cuboid_neighbours": self.cuboid_neighbours,
+        }
+        if self.ip_count is not None:
+            counts["ip_count"] = self.ip_count
+        for name, value in counts.items():
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if "lloyd" in name else 1):
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.ip_count is not None and self.ip_count < self.kernel_count:
+            raise ValueError(f"ip_count ({self.ip_count}) must be >= kernel_count ({self.kernel_count}): "
+                             "every kernel centre is an integrator point")
+        if self.order not in ORDERS:
+            raise ValueError(f"unknown order {self.order!r}; valid: {', '.join(ORDERS)}")
+        if self.mass_quadrature not in ("cuboid", "ip"):
+            raise ValueError(f"unknown mass_quadrature {self.mass_quadrature!r}; valid: cuboid, ip")
+        if not (isinstance(self.support_scale, (int, float)) and math.isfinite(self.support_scale)
+                and self.support_scale > 1):
+            raise ValueError(f"support_scale must be a finite number > 1, got {self.support_scale!r}")
+        points = [v for point in self.user_kernels for v in point]
+        if any(not math.isfinite(v) for v in points) or any(len(point) != 3 for point in self.user_kernels):
+            raise ValueError(f"user_kernels must be finite (x, y, z) points, got {self.user_kernels!r}")
 
     def visibility(self, x: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
         """``[M, n]`` kernels visible from each point through every cut (all True without cuts)."""

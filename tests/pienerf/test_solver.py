@@ -123,6 +123,21 @@ def test_bad_material_is_refused_clearly(kwargs, message):
         Material(**kwargs)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"kernel_count": 0}, "kernel_count must be a positive integer"),
+        ({"kernel_count": 8, "ip_count": 4}, "must be >= kernel_count"),
+        ({"order": "cubic"}, "unknown order 'cubic'"),
+        ({"support_scale": float("nan")}, "support_scale must be a finite number > 1"),
+        ({"user_kernels": ((0.0, float("nan"), 0.0),)}, "user_kernels must be finite"),
+    ],
+)
+def test_bad_discretization_is_refused_clearly(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        DiscretizationConfig(**kwargs)
+
+
 def test_bad_solver_config_and_model_inputs(device):
     with pytest.raises(ValueError, match="finite"):
         SolverConfig(gravity=(0.0, float("nan"), 0.0))
