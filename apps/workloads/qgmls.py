@@ -21,7 +21,7 @@ KERNELS = {"smoke": 16, "paper": 78, "large": 200}
 def _box_model(size: str) -> QGMLSModel:
     """A 2:1:1 box of lattice particles, about 25 particles per kernel."""
     n = KERNELS[size]
-    spacing = (0.08 / (25 * n)) ** (1 / 3)
+    spacing = (0.016 / (25 * n)) ** (1 / 3)
     axes = [torch.arange(0.5 * spacing, extent, spacing, dtype=torch.float64) for extent in (0.4, 0.2, 0.2)]
     position = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     volume = torch.full((position.shape[0],), spacing**3, dtype=torch.float64)

@@ -1,0 +1,285 @@
+"""Neighbour queries on a point set through Warp's hash grid: fixed-radius neighbours and k nearest.
+
+A :class:`SpatialHash` buckets the points once (``wp.HashGrid``: cubic cells of edge ``cell_size``,
+hashed into a fixed table, so unbounded scenes cost no more memory than bounded ones); every query
+then visits only the cells that overlap its search ball. Build once, query many times: the renderer
+asks millions of ray samples for their neighbours among a few hundred particles every frame.
+
+Warp rather than Taichi: ``wp.HashGrid`` is a tested, sorted-bucket grid that builds on both devices,
+and on an H100 this project measured Warp's hash-grid kernel 1.6x faster than the same kernel in
+Taichi. On the CPU Warp runs a kernel on one thread.
+
+Distances are Euclidean, in the units of the points (metres in this project), compared in float32.
+"""
+
+# Warp needs int(0)/bool(True) to declare variables that change inside dynamic loops.
+# ruff: noqa: UP018
+
+import math
+
+import torch
+import warp as wp
+
+from kernels import backend
+
+__all__ = ["SpatialHash", "knn", "radius_neighbours"]
+
+# Hashed cells per axis; the table has at most this cubed entries whatever the extent of the scene.
+_MAX_GRID_DIM = 128
+
+
+@wp.kernel
+def _radius_query(
+    grid: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    queries: wp.array(dtype=wp.vec3),
+    radius: float,
+    index: wp.array2d(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+):
+    q = wp.tid()
+    x = queries[q]
+    capacity = index.shape[1]
+    radius_sq = radius * radius
+    found = int(0)
+    j = int(0)
+    query = wp.hash_grid_query(grid, x, radius)
+    while wp.hash_grid_query_next(query, j):
+        if wp.length_sq(points[j] - x) <= radius_sq:
+            if found < capacity:
+                index[q, found] = j
+            found += 1
+    count[q] = found
+
+
+@wp.func
+def _before(distance_sq_a: float, index_a: int, distance_sq_b: float, index_b: int) -> bool:
+    # Nearest first; equal distances in increasing point index, so ties have one answer.
+    return distance_sq_a < distance_sq_b or (distance_sq_a == distance_sq_b and index_a < index_b)
+
+
+@wp.kernel
+def _knn_query(
+    grid: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    queries: wp.array(dtype=wp.vec3),
+    start_radius: float,
+    max_radius: float,
+    index: wp.array2d(dtype=wp.int32),
+    distance: wp.array2d(dtype=wp.float32),
+):
+    # Rows of ``index``/``distance`` hold the current k best as an insertion-sorted list of squared
+    # distances; the search ball doubles until it holds k points (then the k nearest lie inside it).
+    q = wp.tid()
+    x = queries[q]
+    k = index.shape[1]
+    radius = start_radius
+    kept = int(0)
+    searching = bool(True)
+    while searching:
+        radius_sq = radius * radius
+        found = int(0)
+        kept = int(0)
+        j = int(0)
+        query = wp.hash_grid_query(grid, x, radius)
+        while wp.hash_grid_query_next(query, j):
+            d_sq = wp.length_sq(points[j] - x)
+            if d_sq <= radius_sq:
+                found += 1
+                slot = int(-1)
+                if kept < k:
+                    slot = kept
+                    kept += 1
+                elif _before(d_sq, j, distance[q, k - 1], index[q, k - 1]):
+                    slot = k - 1
+                if slot >= 0:
+                    while slot > 0 and _before(d_sq, j, distance[q, slot - 1], index[q, slot - 1]):
+                        distance[q, slot] = distance[q, slot - 1]
+                        index[q, slot] = index[q, slot - 1]
+                        slot -= 1
+                    distance[q, slot] = d_sq
+                    index[q, slot] = j
+        if found >= k or radius >= max_radius:
+            searching = False
+        else:
+            radius = wp.min(2.0 * radius, max_radius)
+    for s in range(k):
+        if s < kept:
+            distance[q, s] = wp.sqrt(distance[q, s])
+        else:
+            distance[q, s] = wp.inf
+            index[q, s] = -1
+
+
+class SpatialHash:
+    """A hash grid over a fixed point set, built once and queried many times.
+
+    Args:
+        points: float32 ``[P, 3]`` on the backend device, ``P >= 1``; kept by reference (the grid
+            indexes into it), so do not modify it while this object lives.
+        cell_size: edge of the cubic cells, metres. Queries are fastest when their radius is close
+            to it (a query visits ``ceil(2 * radius / cell_size + 1)^3`` cells at most).
+
+    Raises:
+        ValueError: the point set is empty or malformed, or ``cell_size`` is not positive.
+    """
+
+    def __init__(self, points: torch.Tensor, cell_size: float):
+        _check_points(points, "points")
+        if points.shape[0] == 0:
+            raise ValueError("SpatialHash needs at least one point; the point set is empty (check the sampling step)")
+        if not (cell_size > 0.0 and math.isfinite(cell_size)):
+            raise ValueError(f"cell_size must be a positive finite length in metres, got {cell_size}")
+        self.points = points
+        self.cell_size = float(cell_size)
+        self._points_wp = backend.to_warp(points, dtype=wp.vec3)
+        dim = int(min(_MAX_GRID_DIM, max(8, 2 * math.ceil(points.shape[0] ** (1.0 / 3.0)))))
+        self.grid = wp.HashGrid(dim, dim, dim, device=backend.warp_device())
+        self.grid.build(self._points_wp, self.cell_size)
+        lo, hi = points.amin(0), points.amax(0)
+        # Mean volume per point of the bounding box (padded by one cell so flat sets are not zero).
+        self._volume_per_point = float(torch.prod(hi - lo + self.cell_size)) / points.shape[0]
+
+    @property
+    def grid_id(self) -> int:
+        """The ``wp.HashGrid`` id to pass to other Warp kernels querying the same points."""
+        return self.grid.id
+
+    def radius_neighbours(
+        self, queries: torch.Tensor, radius: float, max_neighbours: int
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """All points within ``radius`` (inclusive) of each query.
+
+        Args:
+            queries: float32 ``[Q, 3]`` on the backend device.
+            radius: search radius, metres, ``> 0``.
+            max_neighbours: columns of the returned index table, ``>= 1``.
+
+        Returns:
+            ``(index, count)``: ``index`` int32 ``[Q, max_neighbours]``, point indices padded with -1,
+            in no particular order; ``count`` int32 ``[Q]``, the true number of points within
+            ``radius``. When ``count > max_neighbours`` the row holds the first ``max_neighbours``
+            the traversal met (an arbitrary subset), so compare ``count`` with ``max_neighbours``
+            to detect truncation.
+        """
+        _check_points(queries, "queries")
+        if not (radius > 0.0 and math.isfinite(radius)):
+            raise ValueError(f"radius must be a positive finite length in metres, got {radius}")
+        if max_neighbours < 1:
+            raise ValueError(f"max_neighbours must be at least 1, got {max_neighbours}")
+        index = torch.full((queries.shape[0], max_neighbours), -1, dtype=torch.int32, device=queries.device)
+        count = torch.zeros(queries.shape[0], dtype=torch.int32, device=queries.device)
+        if queries.shape[0] > 0:
+            wp.launch(
+                _radius_query,
+                dim=queries.shape[0],
+                inputs=[
+                    self.grid.id,
+                    self._points_wp,
+                    backend.to_warp(queries, dtype=wp.vec3),
+                    float(radius),
+                    backend.to_warp(index),
+                    backend.to_warp(count),
+                ],
+                device=backend.warp_device(),
+            )
+        return index, count
+
+    def knn(self, queries: torch.Tensor, k: int, max_radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """The ``k`` nearest points of each query, nearest first, searched within ``max_radius``.
+
+        The search starts from the radius of a ball expected to hold ``k`` points at the set's mean
+        density and doubles it until it holds ``k`` points or reaches ``max_radius``, so a query
+        far from every point costs ``log2(max_radius / start)`` passes.
+
+        Args:
+            queries: float32 ``[Q, 3]`` on the backend device.
+            k: neighbours per query, ``>= 1`` (may exceed the number of points).
+            max_radius: largest distance searched, metres, ``> 0``.
+
+        Returns:
+            ``(index, distance)``: int32 ``[Q, k]`` point indices and float32 ``[Q, k]`` distances
+            (metres), sorted by distance and, among equal distances, by index. Slots beyond the
+            points found within ``max_radius`` hold -1 and ``inf``.
+        """
+        _check_points(queries, "queries")
+        _check_knn_arguments(k, max_radius)
+        start = (3.0 * k * self._volume_per_point / (4.0 * math.pi)) ** (1.0 / 3.0)
+        start = min(max(start, 1e-3 * self.cell_size), max_radius)
+        index = torch.empty((queries.shape[0], k), dtype=torch.int32, device=queries.device)
+        distance = torch.empty((queries.shape[0], k), dtype=torch.float32, device=queries.device)
+        if queries.shape[0] > 0:
+            wp.launch(
+                _knn_query,
+                dim=queries.shape[0],
+                inputs=[
+                    self.grid.id,
+                    self._points_wp,
+                    backend.to_warp(queries, dtype=wp.vec3),
+                    float(start),
+                    float(max_radius),
+                    backend.to_warp(index),
+                    backend.to_warp(distance),
+                ],
+                device=backend.warp_device(),
+            )
+        return index, distance
+
+
+def radius_neighbours(
+    points: torch.Tensor, queries: torch.Tensor, radius: float, max_neighbours: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """All of ``points`` within ``radius`` of each query; one-shot form of :meth:`SpatialHash.radius_neighbours`.
+
+    Args:
+        points: float32 ``[P, 3]`` on the backend device, ``P >= 1``.
+        queries: float32 ``[Q, 3]`` on the backend device.
+        radius: search radius, metres (also the cell size of the grid built for this call).
+        max_neighbours: columns of the returned index table.
+
+    Returns:
+        ``(index [Q, max_neighbours] int32 padded with -1, count [Q] int32)`` as in
+        :meth:`SpatialHash.radius_neighbours`.
+    """
+    return SpatialHash(points, radius).radius_neighbours(queries, radius, max_neighbours)
+
+
+def knn(points: torch.Tensor, queries: torch.Tensor, k: int, max_radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` nearest of ``points`` to each query; one-shot form of :meth:`SpatialHash.knn`.
+
+    The grid's cell size is the largest extent of ``points`` times ``(k / P)^(1/3)`` (capped at
+    ``max_radius``): about the edge of a cube holding ``k`` points at their mean density.
+
+    Args:
+        points: float32 ``[P, 3]`` on the backend device, ``P >= 1``.
+        queries: float32 ``[Q, 3]`` on the backend device.
+        k: neighbours per query.
+        max_radius: largest distance searched, metres.
+
+    Returns:
+        ``(index [Q, k] int32, distance [Q, k] float32)``, -1 and ``inf`` where fewer than ``k``
+        points lie within ``max_radius``.
+    """
+    _check_points(points, "points")
+    if points.shape[0] == 0:
+        raise ValueError("knn needs at least one point; the point set is empty (check the sampling step)")
+    _check_knn_arguments(k, max_radius)
+    largest_extent = float((points.amax(0) - points.amin(0)).max())
+    cell = largest_extent * (k / points.shape[0]) ** (1.0 / 3.0) if largest_extent > 0.0 else max_radius
+    return SpatialHash(points, min(cell, max_radius)).knn(queries, k, max_radius)
+
+
+def _check_points(tensor: torch.Tensor, what: str) -> None:
+    if not isinstance(tensor, torch.Tensor):
+        raise TypeError(f"{what} must be a torch.Tensor, got {type(tensor).__name__}")
+    if tensor.dtype != torch.float32:
+        raise TypeError(f"{what} must be float32, got {tensor.dtype}; convert with .float()")
+    if tensor.dim() != 2 or tensor.shape[1] != 3:
+        raise ValueError(f"{what} must have shape [N, 3], got {tuple(tensor.shape)}")
+
+
+def _check_knn_arguments(k: int, max_radius: float) -> None:
+    if k < 1:
+        raise ValueError(f"k must be at least 1, got {k}")
+    if not (max_radius > 0.0 and math.isfinite(max_radius)):
+        raise ValueError(f"max_radius must be a positive finite length in metres, got {max_radius}")
