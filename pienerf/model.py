@@ -162,6 +162,11 @@ class QGMLSModel:
         )
         self._precompute()
 
+    @classmethod
+    def from_particles(cls, particles, config: DiscretizationConfig = DiscretizationConfig()) -> QGMLSModel:
+        """Build from :class:`pienerf.sampling.Particles` (Poisson-disk or grid samples of a density)."""
+        return cls(particles.position, particles.volume, config, device=particles.position.device)
+
     def _precompute(self) -> None:
         """Shape functions at IPs and particles, quadrature, mass (everything q-independent)."""
         config = self.config
