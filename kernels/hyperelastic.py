@@ -221,6 +221,7 @@ def _material_response(
     lam: wp.array(dtype=wp.float64),
     model: int,
     project: int,
+    derivatives: int,
     psi: wp.array(dtype=wp.float64),
     P: wp.array(dtype=wp.mat33d),
     dPdF: wp.array(dtype=_mat99),
@@ -230,8 +231,12 @@ def _material_response(
     m = mu[p]
     l = lam[p]
     psi[p] = _psi(model, s, m, l)
+    if derivatives < 1:
+        return
     g = _dpsi(model, s, m, l)
     P[p] = U * wp.diag(g) * wp.transpose(V)
+    if derivatives < 2:
+        return
 
     zero = wp.float64(0.0)
     A = _mat99()
@@ -265,6 +270,7 @@ def material_response(
     lam: torch.Tensor,
     model: MaterialModel,
     project: bool = True,
+    derivatives: int = 2,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Energy density, first Piola–Kirchhoff stress and its derivative at material points.
 
@@ -274,6 +280,8 @@ def material_response(
         lam: second Lamé parameter per point ``[M]`` (Pa), float64.
         model: the energy density (module docstring).
         project: clamp the Hessian's eigenvalues at zero (positive semi-definite result).
+        derivatives: 0 computes Ψ only, 1 adds P, 2 adds ∂P/∂F; outputs not computed are left
+            uninitialised (a line search needs only Ψ).
 
     Returns:
         ``psi [M]`` (J/m³; +inf for an inverted Neo-Hookean point), ``P [M, 3, 3]`` (Pa) and
@@ -299,6 +307,7 @@ def material_response(
                 backend.to_warp(lam),
                 int(model),
                 int(project),
+                int(derivatives),
             ],
             outputs=[backend.to_warp(psi), backend.to_warp(P, dtype=wp.mat33d), backend.to_warp(dPdF, dtype=_mat99)],
             device=backend.warp_device(),

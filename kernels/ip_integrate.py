@@ -117,7 +117,8 @@ class IPIntegrator:
         """
         K, G, S, _ = self.shape_grad.shape
         F = self.deformation_gradient(q)
-        psi, P, dPdF = self.response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project)
+        derivatives = 2 if hessian else (1 if gradient else 0)
+        psi, P, dPdF = self.response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project, derivatives)
         ip_energy = (self.weight * psi.view(K, G)).sum(1)
         result = IPIntegral(ip_energy.sum(), ip_energy, torch.linalg.det(F).min())
         if gradient or hessian:

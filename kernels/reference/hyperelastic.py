@@ -36,7 +36,8 @@ def energy_density(F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: 
 
 
 def material_response(
-    F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel, project: bool = True
+    F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel, project: bool = True,
+    derivatives: int = 2,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Same contract as :func:`kernels.hyperelastic.material_response`, one point at a time."""
     mu = mu.to(F).expand(F.shape[0])
@@ -59,10 +60,12 @@ def material_response(
 
 
 def material_response_batched(
-    F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel, project: bool = True
+    F: torch.Tensor, mu: torch.Tensor, lam: torch.Tensor, model: MaterialModel, project: bool = True,
+    derivatives: int = 2,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Vectorised form of :func:`material_response` (``torch.func.vmap`` over autograd), the pure
-    torch baseline that benchmarks time against the kernel."""
+    torch baseline that benchmarks time against the kernel; ``derivatives`` as there (skipped
+    outputs are ``None``)."""
     mu = mu.to(F).expand(F.shape[0])
     lam = lam.to(F).expand(F.shape[0])
 
@@ -71,7 +74,11 @@ def material_response_batched(
 
     flat = F.reshape(-1, 9)
     psi = torch.func.vmap(energy)(flat, mu, lam)
+    if derivatives < 1:
+        return psi, None, None
     P = torch.func.vmap(torch.func.grad(energy))(flat, mu, lam).reshape(-1, 3, 3)
+    if derivatives < 2:
+        return psi, P, None
     H = torch.func.vmap(torch.func.hessian(energy))(flat, mu, lam)
     H = 0.5 * (H + H.mT)
     if project:
