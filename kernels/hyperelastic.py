@@ -31,6 +31,9 @@ import warp as wp
 
 from kernels import backend
 
+# Derivatives are written out analytically; Warp's adjoint code would only add compile time.
+wp.set_module_options({"enable_backward": False})
+
 __all__ = ["MaterialModel", "material_response"]
 
 
