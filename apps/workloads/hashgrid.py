@@ -1,0 +1,109 @@
+"""Multiresolution hash encoding (PIE-NeRF §3.1): forward features and backward table gradient.
+
+DRAM traffic model (``bytes_moved``), compulsory traffic only, every byte counted once:
+
+* forward: read the positions (12 B per point), write the features (``4 L F`` B per point), read
+  each table row the level can reach once (``min(T, (N_l + 1)^3)`` rows of ``4 F`` B per level);
+* backward: read the positions and the incoming feature gradient (``12 + 4 L F`` B per point), zero
+  the whole gradient table (``4 L T F`` B), then read and write every reachable row once.
+
+Repeated reads of a row by other points are assumed to hit the cache; the fraction of the roofline is
+therefore an upper bound on how well the kernel uses DRAM, and the gap to it is the cost of the
+random gathers (forward) and atomic adds (backward).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from apps.workloads import Case, workload
+from kernels import backend
+from kernels.hashgrid import default_framework, hashgrid_backward, hashgrid_forward, level_resolutions
+from kernels.reference.hashgrid import hashgrid_backward_torch, hashgrid_forward_torch
+
+# points, log2 table size; 16 levels of 2 features from N_min = 16 to N_max = 2048 at every size.
+_SIZES = {"smoke": (1 << 14, 14), "paper": (1 << 20, 19), "large": (1 << 20, 19)}
+_LEVELS, _FEATURES, _BASE, _MAX = 16, 2, 16, 2048
+
+
+def _inputs(size: str, framework: str | None):
+    points, log2_table_size = _SIZES[size]
+    device = backend.torch_device()
+    generator = torch.Generator(device="cpu").manual_seed(0)
+    x = torch.rand(points, 3, generator=generator).to(device)
+    table_size = 1 << log2_table_size
+    table = (torch.rand(_LEVELS, table_size, _FEATURES, generator=generator) * 2e-4 - 1e-4).to(device)
+    resolutions = level_resolutions(_LEVELS, _BASE, _MAX).to(device)
+    reachable_rows = sum(min(table_size, (n + 1) ** 3) for n in level_resolutions(_LEVELS, _BASE, _MAX).tolist())
+    params = {
+        "points": points,
+        "levels": _LEVELS,
+        "features": _FEATURES,
+        "table_size": table_size,
+        "base_resolution": _BASE,
+        "max_resolution": _MAX,
+        "framework": framework or default_framework(),
+    }
+    return x, table, resolutions, reachable_rows, params
+
+
+def _forward_case(size: str, framework: str | None) -> Case:
+    x, table, resolutions, reachable_rows, params = _inputs(size, framework)
+    points, row_bytes = x.shape[0], 4 * _FEATURES
+    bytes_moved = points * (12 + _LEVELS * row_bytes) + reachable_rows * row_bytes
+    return Case(
+        run=lambda: hashgrid_forward(x, table, resolutions, framework=framework),
+        reference=lambda: hashgrid_forward_torch(x, table, resolutions),
+        params=params,
+        work=points / 1e6,
+        unit="Mpoints/s",
+        bytes_moved=bytes_moved,
+        reference_name="torch gather",
+    )
+
+
+def _backward_case(size: str, framework: str | None) -> Case:
+    x, table, resolutions, reachable_rows, params = _inputs(size, framework)
+    points, row_bytes = x.shape[0], 4 * _FEATURES
+    table_size = table.shape[1]
+    grad_out = torch.rand(points, _LEVELS * _FEATURES, device=x.device) - 0.5
+    bytes_moved = points * (12 + _LEVELS * row_bytes) + table.numel() * 4 + 2 * reachable_rows * row_bytes
+    return Case(
+        run=lambda: hashgrid_backward(x, grad_out, resolutions, table_size, framework=framework),
+        reference=lambda: hashgrid_backward_torch(x, grad_out, resolutions, table_size),
+        params=params,
+        work=points / 1e6,
+        unit="Mpoints/s",
+        bytes_moved=bytes_moved,
+        reference_name="torch index_add_",
+    )
+
+
+@workload("hashgrid_fwd", "hash-grid encoding forward, [N, 3] -> [N, 32], in the device's default framework")
+def bench_hashgrid_fwd(device: str, size: str) -> Case:
+    return _forward_case(size, None)
+
+
+@workload("hashgrid_bwd", "hash-grid encoding backward, [N, 32] -> [16, T, 2] table gradient, default framework")
+def bench_hashgrid_bwd(device: str, size: str) -> Case:
+    return _backward_case(size, None)
+
+
+@workload("hashgrid_fwd_taichi", "hashgrid_fwd in Taichi")
+def bench_hashgrid_fwd_taichi(device: str, size: str) -> Case:
+    return _forward_case(size, "taichi")
+
+
+@workload("hashgrid_fwd_warp", "hashgrid_fwd in Warp")
+def bench_hashgrid_fwd_warp(device: str, size: str) -> Case:
+    return _forward_case(size, "warp")
+
+
+@workload("hashgrid_bwd_taichi", "hashgrid_bwd in Taichi")
+def bench_hashgrid_bwd_taichi(device: str, size: str) -> Case:
+    return _backward_case(size, "taichi")
+
+
+@workload("hashgrid_bwd_warp", "hashgrid_bwd in Warp")
+def bench_hashgrid_bwd_warp(device: str, size: str) -> Case:
+    return _backward_case(size, "warp")

@@ -1,0 +1,189 @@
+import math
+
+import pytest
+import torch
+
+from kernels import backend
+from kernels.hashgrid import (
+    FRAMEWORKS,
+    HashGridConfig,
+    HashGridEncoding,
+    HashGridFunction,
+    hashgrid_backward,
+    hashgrid_forward,
+    level_resolutions,
+)
+from kernels.reference.hashgrid import (
+    cell_corners_torch,
+    hashgrid_backward_torch,
+    hashgrid_forward_torch,
+    spatial_hash_torch,
+)
+
+# 6 levels from 4 to 128 cells: the coarse levels are dense in a 2^12-row table, the fine ones hashed.
+LEVELS, BASE, MAX = 6, 4, 128
+
+
+def _points(n: int, seed: int = 0, spread: float = 0.0) -> torch.Tensor:
+    """``[n, 3]`` points in the unit cube, widened by ``spread`` on each side to test clamping."""
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.rand(n, 3, generator=generator) * (1 + 2 * spread) - spread
+    return x.to(backend.torch_device())
+
+
+def _table(levels: int, table_size: int, features: int, seed: int = 1) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    return torch.randn(levels, table_size, features, generator=generator).to(backend.torch_device())
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+@pytest.mark.parametrize(("table_size", "features"), [(1 << 12, 2), (3001, 3), (1 << 10, 1)])
+def test_forward_matches_reference(device, framework, table_size, features):
+    x = _points(4000, spread=0.1)
+    table = _table(LEVELS, table_size, features)
+    resolutions = level_resolutions(LEVELS, BASE, MAX)
+    out = hashgrid_forward(x, table, resolutions, framework=framework)
+    expected = hashgrid_forward_torch(x, table, resolutions)
+    assert out.shape == (4000, LEVELS * features)
+    torch.testing.assert_close(out, expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+@pytest.mark.parametrize(("table_size", "features"), [(1 << 12, 2), (3001, 3)])
+def test_backward_matches_reference_with_hash_collisions(device, framework, table_size, features):
+    x = _points(5000, seed=2)
+    resolutions = level_resolutions(LEVELS, BASE, MAX)
+    finest = int(resolutions[-1])
+    assert (finest + 1) ** 3 > table_size, "the finest level must be hashed for this test"
+    rows, _ = cell_corners_torch(x, finest, table_size)
+    vertices = (x.clamp(0, 1) * finest).floor().clamp(0, finest - 1).long()[:, None] + torch.tensor(
+        [[(c >> a) & 1 for a in range(3)] for c in range(8)], device=x.device
+    )
+    distinct_vertices = torch.unique(vertices.reshape(-1, 3), dim=0).shape[0]
+    assert torch.unique(rows).numel() < distinct_vertices, "distinct vertices must collide in the table"
+
+    grad_out = torch.randn(5000, LEVELS * features, device=x.device)
+    grad_table = hashgrid_backward(x, grad_out, resolutions, table_size, framework=framework)
+    expected = hashgrid_backward_torch(x, grad_out, resolutions, table_size)
+    assert grad_table.shape == (LEVELS, table_size, features)
+    torch.testing.assert_close(grad_table, expected, rtol=1e-4, atol=1e-4)
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_autograd_matches_reference_autograd(device, framework):
+    config = HashGridConfig(levels=LEVELS, features=2, log2_table_size=11, base_resolution=BASE, max_resolution=MAX)
+    encoding = HashGridEncoding(config, framework=framework).to(backend.torch_device())
+    table = encoding.table.detach().clone().requires_grad_(True)
+    x = _points(3000, seed=3)
+    weights = torch.randn(3000, config.output_dim, device=x.device)
+
+    out = encoding(x)
+    (out * weights).square().sum().backward()
+    expected = hashgrid_forward_torch(x, table, encoding.resolutions)
+    (expected * weights).square().sum().backward()
+
+    torch.testing.assert_close(out.detach(), expected.detach(), rtol=1e-5, atol=1e-7)
+    assert encoding.table.grad.abs().max() > 0
+    torch.testing.assert_close(encoding.table.grad, table.grad, rtol=1e-4, atol=1e-9)
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_dense_and_hashed_levels_index_the_documented_rows(device, framework):
+    # A table whose row r holds the feature r turns the encoding at a grid vertex into the row index.
+    resolution = 8
+    vertices = torch.tensor([[1, 2, 3], [7, 0, 5], [4, 4, 4], [0, 0, 0]])
+    x = (vertices.float() / resolution).to(backend.torch_device())
+    resolutions = torch.tensor([resolution], dtype=torch.int32)
+    side = resolution + 1
+    for table_size, dense in ((side**3, True), (side**3 - 1, False)):
+        table = torch.arange(table_size, dtype=torch.float32, device=x.device).reshape(1, table_size, 1)
+        rows = hashgrid_forward(x, table, resolutions, framework=framework)[:, 0].round().long().cpu()
+        if dense:
+            expected = vertices[:, 0] + side * (vertices[:, 1] + side * vertices[:, 2])
+        else:
+            h = vertices[:, 0] ^ (vertices[:, 1] * 2654435761) ^ (vertices[:, 2] * 805459861)
+            expected = (h % 2**32) % table_size
+            assert torch.equal(spatial_hash_torch(vertices, table_size), expected)
+        assert torch.equal(rows, expected), f"dense={dense}"
+
+
+def test_spatial_hash_wraps_in_uint32():
+    vertices = torch.tensor([[2047, 2048, 2047], [1, 1, 1]])
+    expected = [((2047 ^ (2048 * 2654435761 % 2**32) ^ (2047 * 805459861 % 2**32)) % 2**32) % 2**19,
+                (1 ^ 2654435761 ^ 805459861) % 2**19]
+    assert spatial_hash_torch(vertices, 2**19).tolist() == expected
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_points_outside_the_cube_are_clamped(device, framework):
+    x = _points(2000, seed=4, spread=0.5)
+    assert (x < 0).any() and (x > 1).any()
+    table = _table(LEVELS, 1 << 12, 2)
+    resolutions = level_resolutions(LEVELS, BASE, MAX)
+    outside = hashgrid_forward(x, table, resolutions, framework=framework)
+    clamped = hashgrid_forward(x.clamp(0, 1), table, resolutions, framework=framework)
+    torch.testing.assert_close(outside, clamped, rtol=0, atol=0)
+
+
+def test_level_resolutions_follow_the_geometric_growth():
+    resolutions = level_resolutions(16, 16, 2048).tolist()
+    growth = math.exp(math.log(2048 / 16) / 15)
+    assert resolutions[0] == 16 and resolutions[-1] == 2048
+    assert all(abs(n - math.floor(16 * growth**level)) <= 1 for level, n in enumerate(resolutions))
+    assert resolutions == sorted(set(resolutions))
+    assert level_resolutions(1, 32, 64).tolist() == [32]
+    with pytest.raises(ValueError, match="base_resolution <= max_resolution"):
+        level_resolutions(4, 64, 32)
+
+
+def test_encoding_module_shapes_and_initialisation(device):
+    config = HashGridConfig(levels=4, features=2, log2_table_size=10, base_resolution=4, max_resolution=32)
+    encoding = HashGridEncoding(config).to(backend.torch_device())
+    assert encoding.table.shape == (4, 1024, 2) and encoding.output_dim == 8
+    assert encoding.table.abs().max() <= config.init_scale
+    assert encoding.resolutions.tolist() == level_resolutions(4, 4, 32).tolist()
+    out = encoding(_points(10))
+    assert out.shape == (10, 8) and out.dtype == torch.float32
+    with pytest.raises(ValueError, match="log2_table_size"):
+        HashGridConfig(log2_table_size=40)
+
+
+def test_empty_input_gives_empty_features_and_zero_gradient(device):
+    x = torch.zeros(0, 3, device=backend.torch_device())
+    table = _table(2, 64, 2)
+    resolutions = level_resolutions(2, 2, 4)
+    assert hashgrid_forward(x, table, resolutions).shape == (0, 4)
+    grad = hashgrid_backward(x, torch.zeros(0, 4, device=x.device), resolutions, 64)
+    assert grad.shape == (2, 64, 2) and not grad.any()
+
+
+def test_bad_inputs_raise_clear_errors(device):
+    dev = backend.torch_device()
+    x = _points(8)
+    table = _table(3, 64, 2)
+    resolutions = level_resolutions(3, 2, 8)
+    cases = [
+        (lambda: hashgrid_forward(x.double(), table, resolutions), TypeError, "x must be a float32 tensor"),
+        (lambda: hashgrid_forward(x[:, :2].contiguous(), table, resolutions), ValueError, r"x must be \[N, 3\]"),
+        (lambda: hashgrid_forward(x, table.half(), resolutions), TypeError, "table must be a float32"),
+        (lambda: hashgrid_forward(x, table[0], resolutions), ValueError, r"table must be \[L, T, F\]"),
+        (lambda: hashgrid_forward(x, table, resolutions[:2]), ValueError, "one entry per table level"),
+        (lambda: hashgrid_forward(x, table, resolutions.float()), TypeError, "int32 or int64"),
+        (lambda: hashgrid_forward(x, table, torch.tensor([2, 0, 8])), ValueError, ">= 1 cell"),
+        (lambda: hashgrid_forward(x, table, resolutions, framework="cuda"), ValueError, "unknown framework"),
+        (lambda: hashgrid_forward(x.t().contiguous().t(), table, resolutions), ValueError, "contiguous"),
+        (lambda: hashgrid_backward(x, torch.zeros(8, 5, device=dev), resolutions, 64), ValueError, r"\[N, L \* F\]"),
+        (lambda: hashgrid_backward(x, torch.zeros(8, 6, device=dev), resolutions, 0), ValueError, "table_size"),
+    ]
+    for call, error, message in cases:
+        with pytest.raises(error, match=message):
+            call()
+
+
+def test_positions_requiring_a_gradient_are_refused(device):
+    encoding = HashGridEncoding(HashGridConfig(levels=2, log2_table_size=8, base_resolution=2, max_resolution=4))
+    encoding = encoding.to(backend.torch_device())
+    x = _points(4).requires_grad_(True)
+    with pytest.raises(ValueError, match=r"x\.detach\(\)"):
+        encoding(x)
+    assert HashGridFunction.apply(x.detach(), encoding.table, encoding.resolutions).shape == (4, 4)
