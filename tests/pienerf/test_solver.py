@@ -74,7 +74,8 @@ def test_released_drag_decays_with_damping(device):
     corner = model.handle(torch.tensor([[0.375, 0.175, 0.175]]))
     pin = model.handle(model.position[model.position[:, 0] < 0.05])
     pin_springs = PointTargets(pin, pin.rest.clone(), 1e5)
-    drag = PointTargets(corner, corner.rest + torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64), 2e3)
+    lift = torch.tensor([[0.0, 0.1, 0.0]], dtype=torch.float64, device=corner.rest.device)
+    drag = PointTargets(corner, corner.rest + lift, 2e3)
     for _ in range(10):
         solver.step(state, state, ControlQGMLS(springs=[pin_springs, drag]), 1e-2)
     pulled = corner.positions(state.q)[0, 1].item() - corner.rest[0, 1].item()
