@@ -1,0 +1,414 @@
+"""Multi-view RGBA datasets in the NeRF-synthetic / instant-NGP ``transforms*.json`` format: what a NeRF trains on.
+
+PIE-NeRF's input (§3.1, Fig. 2) is a set of photos of a static scene with known cameras; a NeRF renders a pixel by
+integrating density and colour along the pixel's ray. This module reads such a set into tensors and makes the
+rays.
+
+Format (one json per split, paths relative to the json's folder):
+
+* ``frames``: a list of ``{"file_path": ..., "transform_matrix": 4×4}``; ``file_path`` may omit the extension
+  (``./train/r_0`` means ``train/r_0.png``). ``transform_matrix`` is camera-to-world with OpenGL camera axes:
+  x right, y up, the camera looking down −z (as Blender writes it).
+* Intrinsics, top-level or per frame (per-frame values win): ``camera_angle_x`` (horizontal field of view,
+  radians; ``fx = ½ W / tan(½ camera_angle_x)``) with optional ``camera_angle_y``, or instant-NGP's
+  ``fl_x``/``fl_y``/``cx``/``cy``/``w``/``h`` in pixels. Missing ``fy`` equals ``fx``; missing ``cx, cy`` are
+  the image centre. Lens distortion (``k1``, ``k2``, ``p1``, ``p2``) is not modelled and must be zero.
+
+Pixel ``(u, v)`` (column, row, from the top-left corner) has its centre at ``(u + ½, v + ½)``; its ray leaves
+the camera centre along ``((u + ½ − cx) / fx, −(v + ½ − cy) / fy, −1)`` in camera axes. With this convention a
+downscale by an integer ``k`` that averages ``k × k`` blocks divides ``fx, fy, cx, cy`` by exactly ``k``.
+
+Splits: ``split="train"`` reads ``transforms_train.json`` (or instant-NGP's single ``transforms.json``);
+``"val"``/``"test"`` read ``transforms_val.json``/``transforms_test.json`` when present, else hold out every
+``holdout_every``-th view of the training json (views 0, k, 2k, …). The same views leave the training set with
+:meth:`NerfDataset.held_out`, so the two never overlap.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+__all__ = ["Cameras", "NerfDataset", "load_nerf_dataset"]
+
+_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """Pinhole cameras of a dataset's views.
+
+    Attributes:
+        c2w: ``[N, 4, 4]`` float32 camera-to-world transforms, metres (OpenGL axes: x right, y up, looking down −z).
+        fx, fy: ``[N]`` float32 focal lengths, pixels (a shared value is repeated per view).
+        cx, cy: ``[N]`` float32 principal point, pixels from the image's top-left corner.
+        width, height: image size, pixels.
+    """
+
+    c2w: torch.Tensor
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
+    width: int
+    height: int
+
+    def __len__(self) -> int:
+        return self.c2w.shape[0]
+
+    @property
+    def centers(self) -> torch.Tensor:
+        """``[N, 3]`` camera centres in world coordinates, metres."""
+        return self.c2w[:, :3, 3]
+
+    def to(self, device) -> Cameras:
+        """The same cameras with every tensor on ``device``."""
+        return replace(self, **{k: getattr(self, k).to(device) for k in ("c2w", "fx", "fy", "cx", "cy")})
+
+    def select(self, index) -> Cameras:
+        """The cameras ``index`` picks (an int, a slice, a list or a tensor of view indices)."""
+        index = _view_index(index, len(self))
+        return replace(self, **{k: getattr(self, k)[index] for k in ("c2w", "fx", "fy", "cx", "cy")})
+
+    def scaled(self, downscale: int) -> Cameras:
+        """Cameras of images downscaled by the integer factor ``downscale`` (``k × k`` pixel blocks averaged).
+
+        Raises:
+            ValueError: ``downscale`` is not a positive integer dividing both image sides.
+        """
+        _check_downscale(downscale, self.width, self.height, "the cameras' images")
+        k = float(downscale)
+        return replace(
+            self,
+            fx=self.fx / k,
+            fy=self.fy / k,
+            cx=self.cx / k,
+            cy=self.cy / k,
+            width=self.width // downscale,
+            height=self.height // downscale,
+        )
+
+    def pixel_rays(self, index, u: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World-space rays through continuous pixel coordinates of chosen views.
+
+        Args:
+            index: ``[P]`` view index per ray (tensor) or one int for all.
+            u, v: ``[P]`` pixel coordinates, pixels from the top-left corner (the centre of pixel
+                ``(col, row)`` is ``(col + ½, row + ½)``).
+
+        Returns:
+            ``origins [P, 3]`` (metres) and unit ``directions [P, 3]``, on the cameras' device.
+        """
+        u = torch.as_tensor(u, dtype=self.c2w.dtype, device=self.c2w.device)
+        v = torch.as_tensor(v, dtype=self.c2w.dtype, device=self.c2w.device)
+        view = torch.as_tensor(index, device=self.c2w.device).long().expand_as(u)
+        local = torch.stack(
+            [(u - self.cx[view]) / self.fx[view], -(v - self.cy[view]) / self.fy[view], -torch.ones_like(u)], dim=-1
+        )
+        rotation = self.c2w[view, :3, :3]
+        directions = torch.nn.functional.normalize((rotation @ local[..., None])[..., 0], dim=-1)
+        return self.c2w[view, :3, 3], directions
+
+    def rays(self, index=None, downscale: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through every pixel centre of one view or of all views.
+
+        Args:
+            index: a view index, or ``None`` for all views (rays of view ``i`` follow those of view ``i − 1``).
+            downscale: integer factor: rays through the centres of ``downscale × downscale`` pixel blocks.
+
+        Returns:
+            ``origins [M·H'·W', 3]`` (metres) and unit ``directions [M·H'·W', 3]``, row-major per view, where
+            ``H' = height / downscale``, ``W' = width / downscale`` and ``M`` is 1 or the number of views.
+        """
+        cameras = self.scaled(downscale) if downscale != 1 else self
+        views = torch.arange(len(cameras), device=self.c2w.device) if index is None else torch.tensor([int(index)])
+        views = views.to(self.c2w.device)
+        rows, cols = torch.meshgrid(
+            torch.arange(cameras.height, dtype=self.c2w.dtype, device=self.c2w.device) + 0.5,
+            torch.arange(cameras.width, dtype=self.c2w.dtype, device=self.c2w.device) + 0.5,
+            indexing="ij",
+        )
+        pixels = rows.numel()
+        view = views.repeat_interleave(pixels)
+        u = cols.reshape(-1).repeat(views.numel())
+        v = rows.reshape(-1).repeat(views.numel())
+        return cameras.pixel_rays(view, u, v)
+
+
+@dataclass
+class NerfDataset:
+    """Images, alphas and cameras of one split of a multi-view dataset.
+
+    Attributes:
+        images: ``[N, H, W, 3]`` float32 in [0, 1], composited over ``background``.
+        alphas: ``[N, H, W]`` float32 coverage in [0, 1] (1 where an image has no alpha channel).
+        cameras: the views' :class:`Cameras`.
+        names: ``N`` frame names (``file_path`` as written in the json).
+        split: the split that was read (``"train"``, ``"val"`` or ``"test"``).
+        background: the colour composited under the images: an RGB triple, or ``"random"`` (uniform noise per
+            pixel, redrawn at load with the given seed: a NeRF trained on it cannot bake a background colour
+            into its density).
+    """
+
+    images: torch.Tensor
+    alphas: torch.Tensor
+    cameras: Cameras
+    names: list[str]
+    split: str
+    background: tuple[float, float, float] | str = (1.0, 1.0, 1.0)
+
+    def __len__(self) -> int:
+        return self.images.shape[0]
+
+    def select(self, index) -> NerfDataset:
+        """The views ``index`` picks (an int, a slice, a list or a tensor of view indices)."""
+        index = _view_index(index, len(self))
+        names = [self.names[i] for i in torch.arange(len(self))[index].tolist()]
+        return replace(
+            self, images=self.images[index], alphas=self.alphas[index], cameras=self.cameras.select(index), names=names
+        )
+
+    def held_out(self, every: int = 8) -> tuple[NerfDataset, NerfDataset]:
+        """Split into training views and held-out views 0, ``every``, 2·``every``, … (as ``split="test"`` does
+        when a dataset has no test json).
+
+        Returns:
+            ``(train, held_out)``.
+        """
+        if not (isinstance(every, int) and every >= 2):
+            raise ValueError(f"every must be an integer ≥ 2 (hold out one view in `every`), got {every!r}")
+        held = torch.arange(len(self)) % every == 0
+        train, test = self.select(torch.nonzero(~held).flatten()), self.select(torch.nonzero(held).flatten())
+        return replace(train, split="train"), replace(test, split="test")
+
+
+def load_nerf_dataset(
+    folder: str | Path,
+    split: str = "train",
+    downscale: int = 1,
+    background: tuple[float, float, float] | str = (1.0, 1.0, 1.0),
+    max_views: int | None = None,
+    holdout_every: int = 8,
+    seed: int = 0,
+) -> NerfDataset:
+    """Read one split of a NeRF-synthetic / instant-NGP dataset.
+
+    Args:
+        folder: the dataset's folder (holding ``transforms_<split>.json``) or a path to a transforms json.
+        split: ``"train"``, ``"val"`` or ``"test"`` (see the module docstring for missing jsons).
+        downscale: integer factor; ``k × k`` blocks are averaged with premultiplied alpha (colour weighted by
+            coverage, so transparent pixels' colours do not bleed into edges) and intrinsics divided by ``k``.
+        background: RGB triple in [0, 1] (``(1, 1, 1)`` white, ``(0, 0, 0)`` black) or ``"random"`` (see
+            :class:`NerfDataset`).
+        max_views: read only the first ``max_views`` views of the split.
+        holdout_every: ``k`` of the held-out views when a val/test json is missing.
+        seed: seed of the ``"random"`` background.
+
+    Returns:
+        A :class:`NerfDataset` on the CPU.
+
+    Raises:
+        FileNotFoundError: the json or an image it lists does not exist.
+        ValueError: the json has no frames or no intrinsics, an image is corrupt, or images differ in size.
+    """
+    json_path, hold_out = _split_json(Path(folder), split, holdout_every)
+    try:
+        meta = json.loads(json_path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{json_path} is not valid json: {error}") from error
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not frames:
+        raise ValueError(f"{json_path} lists no frames; a transforms json needs a non-empty 'frames' list")
+    if hold_out:
+        frames = [frames[i] for i in range(len(frames)) if i % holdout_every == 0]
+    if max_views is not None:
+        if max_views < 1:
+            raise ValueError(f"max_views must be at least 1, got {max_views}")
+        frames = frames[:max_views]
+    background_rgb = _check_background(background)
+
+    paths = [_image_path(json_path, frame) for frame in frames]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        loaded = list(pool.map(lambda p: _read_premultiplied(p, json_path, downscale), paths))
+    (width, height), _ = loaded[0]
+    for path, (size, _) in zip(paths, loaded, strict=True):
+        if size != (width, height):
+            raise ValueError(
+                f"{path.name} is {size[0]}x{size[1]} pixels but {paths[0].name} is {width}x{height}; "
+                f"every view in {json_path.name} must have one size (resize the images to match)"
+            )
+
+    intrinsics = [_intrinsics(meta, frame, width, height, json_path) for frame in frames]
+    fx, fy, cx, cy = (torch.tensor([k[i] for k in intrinsics], dtype=torch.float32) for i in range(4))
+    c2w = torch.tensor(np.stack([_transform(frame, json_path) for frame in frames]), dtype=torch.float32)
+    cameras = Cameras(c2w, fx, fy, cx, cy, width, height).scaled(downscale)
+
+    premultiplied = torch.from_numpy(np.stack([image for _, image in loaded]))  # [N, H, W, 4]
+    alpha = premultiplied[..., 3:4]
+    if isinstance(background_rgb, str):
+        generator = torch.Generator().manual_seed(seed)
+        under = torch.rand(premultiplied.shape[:-1] + (3,), generator=generator)
+    else:
+        under = torch.tensor(background_rgb, dtype=torch.float32)
+    images = (premultiplied[..., :3] + (1.0 - alpha) * under).clamp(0.0, 1.0)
+    return NerfDataset(
+        images=images.contiguous(),
+        alphas=alpha[..., 0].contiguous(),
+        cameras=cameras,
+        names=[str(frame.get("file_path", "")) for frame in frames],
+        split=split,
+        background=background_rgb,
+    )
+
+
+def _split_json(folder: Path, split: str, holdout_every: int) -> tuple[Path, bool]:
+    """The json to read and whether to keep only every ``holdout_every``-th of its frames."""
+    if split not in ("train", "val", "test"):
+        raise ValueError(f"split must be 'train', 'val' or 'test', got {split!r}")
+    if folder.is_file():
+        return folder, False
+    if not folder.is_dir():
+        raise FileNotFoundError(f"dataset folder {folder} does not exist")
+    own = folder / f"transforms_{split}.json"
+    if own.is_file():
+        return own, False
+    training = next((p for p in (folder / "transforms_train.json", folder / "transforms.json") if p.is_file()), None)
+    if training is None:
+        raise FileNotFoundError(
+            f"{folder} holds neither transforms_{split}.json nor transforms_train.json / transforms.json"
+        )
+    if split == "train":
+        return training, False
+    if not (isinstance(holdout_every, int) and holdout_every >= 2):
+        raise ValueError(f"holdout_every must be an integer ≥ 2, got {holdout_every!r}")
+    return training, True
+
+
+def _image_path(json_path: Path, frame: dict) -> Path:
+    if "file_path" not in frame:
+        raise ValueError(f"a frame in {json_path.name} has no 'file_path'")
+    path = (json_path.parent / frame["file_path"]).resolve()
+    if path.suffix in _IMAGE_EXTENSIONS and path.is_file():
+        return path
+    for extension in _IMAGE_EXTENSIONS:
+        candidate = path.with_name(path.name + extension)
+        if candidate.is_file():
+            return candidate
+    shown = path if path.suffix in _IMAGE_EXTENSIONS else path.with_name(path.name + ".png")
+    raise FileNotFoundError(f"{shown} listed in {json_path.name} does not exist")
+
+
+def _read_premultiplied(path: Path, json_path: Path, downscale: int) -> tuple[tuple[int, int], np.ndarray]:
+    """Full-size ``(width, height)`` and the premultiplied RGBA ``[H / k, W / k, 4]`` float32 image of ``path``.
+
+    Colour is multiplied by alpha before ``k × k`` blocks are averaged, so the average is the block's true
+    coverage-weighted colour; an image without alpha has alpha 1.
+    """
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            image.load()
+            if image.mode in ("I;16", "I;16B", "I"):
+                grey = np.asarray(image, dtype=np.float32) / 65535.0
+                rgba = np.concatenate([np.repeat(grey[..., None], 3, -1), np.ones_like(grey)[..., None]], -1)
+            else:
+                rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
+    except (OSError, SyntaxError, ValueError) as error:
+        raise ValueError(
+            f"{path.name} listed in {json_path.name} is not a readable image ({error}); re-export or re-download it"
+        ) from error
+    height, width = rgba.shape[:2]
+    _check_downscale(downscale, width, height, f"{path.name}")
+    rgba[..., :3] *= rgba[..., 3:4]
+    if downscale > 1:
+        rgba = rgba.reshape(height // downscale, downscale, width // downscale, downscale, 4).mean(axis=(1, 3))
+    return (width, height), np.ascontiguousarray(rgba, dtype=np.float32)
+
+
+def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Path) -> tuple[float, ...]:
+    """``(fx, fy, cx, cy)`` in pixels of the full-size image, per-frame keys overriding top-level ones."""
+
+    def get(key):
+        return frame.get(key, meta.get(key))
+
+    for key in _DISTORTION_KEYS:
+        if get(key) not in (None, 0, 0.0):
+            raise ValueError(
+                f"{json_path.name} has lens distortion {key}={get(key)}; only undistorted pinhole images are "
+                "supported: undistort the images and drop the k/p coefficients"
+            )
+    for key, size in (("w", width), ("h", height)):
+        if get(key) is not None and int(get(key)) != size:
+            raise ValueError(
+                f"{json_path.name} says {key}={get(key)} but its images are {width}x{height} pixels; "
+                "fix the json or the images"
+            )
+    if get("fl_x") is not None:
+        fx = float(get("fl_x"))
+    elif get("camera_angle_x") is not None:
+        fx = 0.5 * width / math.tan(0.5 * float(get("camera_angle_x")))
+    else:
+        raise ValueError(
+            f"{json_path.name} gives no intrinsics: add 'camera_angle_x' (radians) or instant-NGP's 'fl_x' (pixels)"
+        )
+    if get("fl_y") is not None:
+        fy = float(get("fl_y"))
+    elif get("camera_angle_y") is not None:
+        fy = 0.5 * height / math.tan(0.5 * float(get("camera_angle_y")))
+    else:
+        fy = fx
+    cx = float(get("cx")) if get("cx") is not None else 0.5 * width
+    cy = float(get("cy")) if get("cy") is not None else 0.5 * height
+    if not all(math.isfinite(x) for x in (fx, fy, cx, cy)) or fx <= 0.0 or fy <= 0.0:
+        raise ValueError(f"{json_path.name} has invalid intrinsics fx={fx}, fy={fy}, cx={cx}, cy={cy}")
+    return fx, fy, cx, cy
+
+
+def _transform(frame: dict, json_path: Path) -> np.ndarray:
+    matrix = np.asarray(frame.get("transform_matrix", ()), dtype=np.float64)
+    if matrix.shape == (3, 4):
+        matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
+    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+        raise ValueError(
+            f"frame {frame.get('file_path')!r} in {json_path.name} needs a finite 4x4 'transform_matrix', "
+            f"got shape {matrix.shape}"
+        )
+    return matrix
+
+
+def _check_background(background) -> tuple[float, float, float] | str:
+    if isinstance(background, str):
+        if background != "random":
+            raise ValueError(f"background must be an RGB triple in [0, 1] or 'random', got {background!r}")
+        return background
+    rgb = tuple(float(c) for c in background)
+    if len(rgb) != 3 or not all(0.0 <= c <= 1.0 for c in rgb):
+        raise ValueError(f"background must be an RGB triple in [0, 1] or 'random', got {background!r}")
+    return rgb
+
+
+def _check_downscale(downscale: int, width: int, height: int, what: str) -> None:
+    if not (isinstance(downscale, int) and downscale >= 1):
+        raise ValueError(f"downscale must be a positive integer, got {downscale!r}")
+    if width % downscale or height % downscale:
+        raise ValueError(
+            f"downscale {downscale} does not divide {what} ({width}x{height} pixels); pick a factor of both sides"
+        )
+
+
+def _view_index(index, count: int):
+    if isinstance(index, int):
+        if not -count <= index < count:
+            raise IndexError(f"view {index} is out of range for {count} views")
+        return slice(index % count, index % count + 1)
+    if isinstance(index, (list, tuple)):
+        return torch.tensor(index, dtype=torch.long)
+    return index
