@@ -1,0 +1,122 @@
+"""Garment simulator (PhysAvatar §3.2): one implicit Codim-IPC step of a sheet falling onto a sphere.
+
+Each repetition advances the same simulation by one frame (Δt = 0.04 s) from where the previous one left it, so
+the timed steps move from free fall into contact; the phase shares in ``extra`` are those of the last step. The
+reference runs the same solver with the element energies, gradients and Hessians from the autograd references
+of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
+per-pair NumPy root finder, far too slow for a step).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from apps.workloads import Case, workload
+from kernels import backend, cloth
+from kernels.reference import cloth as ref
+from physavatar.cloth import ClothConfig, ClothControl, ClothEnergies, SolverCloth
+
+# vertices per side of the square sheet
+_SIDE = {"smoke": 32, "paper": 224, "large": 224}
+_DT = 0.04
+
+
+def _sheet(n: int, width: float, height: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``n × n`` vertices spanning ``width`` in x and z at ``height``, square cells split by a diagonal."""
+    i, j = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+    s = width / (n - 1)
+    x = torch.stack([s * i.reshape(-1) - 0.5 * width, torch.full((n * n,), height), s * j.reshape(-1) - 0.5 * width], 1)
+    v = (i * n + j)[:-1, :-1].reshape(-1)
+    faces = torch.cat([torch.stack([v, v + n, v + 1], 1), torch.stack([v + 1, v + n, v + n + 1], 1)])
+    return x.to(torch.float64), faces.to(torch.int32)
+
+
+def _icosphere(level: int, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Outward-oriented icosphere of ``radius`` about the origin, subdivided ``level`` times."""
+    t = (1.0 + 5.0**0.5) / 2.0
+    corners = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
+    corners += [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
+    faces = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2]]
+    faces += [[10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11]]
+    faces += [[6, 2, 10], [8, 6, 7], [9, 8, 1]]
+    points = [[c / math.sqrt(sum(a * a for a in p)) for c in p] for p in corners]
+    midpoint: dict[tuple[int, int], int] = {}  # subdivision replaces every edge, so keys never repeat across levels
+
+    def mid(a: int, b: int) -> int:
+        key = (min(a, b), max(a, b))
+        if key not in midpoint:
+            m = [p + q for p, q in zip(points[a], points[b], strict=True)]
+            norm = math.sqrt(sum(c * c for c in m))
+            points.append([c / norm for c in m])
+            midpoint[key] = len(points) - 1
+        return midpoint[key]
+
+    for _ in range(level):
+        faces = [
+            face
+            for a, b, c in faces
+            for face in ([a, mid(a, b), mid(c, a)], [b, mid(b, c), mid(a, b)], [c, mid(c, a), mid(b, c)])
+            + ([mid(a, b), mid(b, c), mid(c, a)],)
+        ]
+    return radius * torch.tensor(points, dtype=torch.float64), torch.tensor(faces, dtype=torch.int32)
+
+
+def _reference_energies() -> ClothEnergies:
+    """The solver's element evaluators with values, gradients and Hessians from the autograd references."""
+
+    def membrane(x, faces, rest_inv, rest_area, mu, lam, project=False):
+        terms = cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam))
+        return terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
+
+    def bending(x, hinges, rest_angle, rest_weight, k_bend, project=False):
+        terms = cloth.ElementTerms(*ref.bending_energy(x, hinges, rest_angle, rest_weight, k_bend))
+        return terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
+
+    def contact(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness, project=False):
+        pt = cloth.ElementTerms(*ref.point_triangle_barrier(x, pt_pairs, dhat, stiffness))
+        ee = cloth.ElementTerms(*ref.edge_edge_barrier(x, ee_pairs, ee_eps_x, dhat, stiffness))
+        if project:
+            pt, ee = (t._replace(hess=cloth.project_psd(t.hess)) for t in (pt, ee))
+        return pt, ee
+
+    return ClothEnergies(membrane, bending, contact)
+
+
+@workload("cloth_step_large", "one Codim-IPC garment step: a sheet falling onto a sphere (frames/s)")
+def bench_cloth_step_large(device: str, size: str) -> Case:
+    n = _SIDE[size]
+    x, faces = _sheet(n, 1.0, 0.34)
+    body, body_faces = _icosphere(3, 0.3)
+    config = ClothConfig()
+    body = body.to(backend.torch_device())
+    empty = torch.zeros(0, dtype=torch.int64, device=body.device)
+    control = ClothControl(body, body, empty, torch.zeros(0, 3, dtype=torch.float64, device=body.device))
+    extra: dict = {}
+
+    def stepper(energies: ClothEnergies | None, record: bool):
+        solver = SolverCloth(x, faces, config, body_faces, energies=energies)
+        state = solver.initial_state()
+
+        def run():
+            stats = solver.step(state, state, control, _DT)
+            if record:
+                total = sum(stats.time.values()) or 1.0
+                extra["newton_iterations"] = stats.newton_iterations
+                extra["contacts"] = stats.contacts
+                extra["phase_share"] = {k: round(v / total, 4) for k, v in stats.time.items()}
+                extra["linear_solver"] = solver.linear_solver
+            return state.x
+
+        return run
+
+    return Case(
+        run=stepper(None, True),
+        reference=stepper(_reference_energies(), False),
+        params={"vertices": n * n, "faces": int(faces.shape[0]), "body_faces": int(body_faces.shape[0]), "dt": _DT},
+        work=1.0,
+        unit="frames/s",
+        reference_name="autograd element energies (kernels.reference.cloth)",
+        extra=extra,
+    )

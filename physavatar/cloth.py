@@ -1,0 +1,946 @@
+"""Garment simulator of PhysAvatar (§3.2, Appendix A.3): implicit Euler on the Codim-IPC incremental potential.
+
+One step from ``x^t`` minimises, over the free garment vertices ``x``,
+
+``E(x) = ½‖x − x̂‖²_M + Δt² (Ψ_s(x) + Ψ_b(x) + κ B(x) + D(x))``, ``x̂ = x^t + Δt v^t + Δt² g``
+
+(inertia, StVK membrane, discrete-shell bending, IPC barrier, lagged friction), by projected Newton: PSD-projected
+element Hessians assembled into a sparse matrix, a search direction from a sparse solve, a step bounded by additive
+CCD and then backtracked on ``E``. Every accepted iterate is intersection-free, so the state after a step is too.
+
+Paper parameters and their mapping. PhysAvatar estimates ``(ρ, κ_s, κ_b)`` with ``ρ`` in 200–640 and ``κ_s``,
+``κ_b`` in 0.1–8, "scaled as in the C-IPC codebase" (Appendix A.3). In that codebase and PhysAvatar's driver:
+
+* ``ρ`` is a volumetric density, kg/m³; a vertex carries ``m = ρ h Σ A_f / 3`` (``h`` the thickness, lumped mass);
+* ``κ_s`` multiplies a base Young's modulus: ``E = κ_s E₀`` (cotton: ``E₀ = 0.821`` MPa, ``ν = 0.243``,
+  ``h = 0.318`` mm); the membrane has the plane-stress Lamé parameters ``h μ``, ``h λ`` of ``E`` and ``ν``;
+* ``κ_b`` multiplies the hinge stiffness ``k = E h³ / (24 (1 − ν²))`` of that same ``E``, so the bending stiffness
+  is ``k = κ_b κ_s E₀ h³ / (24 (1 − ν²))`` (the driver leaves ``κ_b`` undivided by ``κ_s``), and each hinge stores
+  ``k w̄ (θ − θ̄)²`` with ``w̄ = 3‖ē‖²/Ā``. Its continuum limit depends on the mesh: on a square grid with one
+  diagonal direction it is ``3k [(c_x − c_xy)² + (c_y − c_xy)² + 4 c_xy²]`` per unit area (curvatures ``c``), so
+  cylindrical bending has rigidity ``6k`` (3× the plate's ``D = E h³/(12(1 − ν²))``) and a free narrow strip
+  ``4.8 k`` per unit width (tests/physavatar/test_cloth.py derives both).
+
+Kinematic vertices. The body collider and the garment's Dirichlet (boundary) vertices move on straight lines from
+their start-of-step positions to their targets. They are eliminated from the linear system: each Newton
+direction prescribes their remaining displacement ``p_k`` and solves ``H_ff p_f = −g_f − H_fk p_k`` for the free
+ones, so the barrier's coupling pushes the garment ahead of the body; the CCD-bounded step moves both. Until the
+kinematic vertices reach their targets the step is the CCD bound (the potential changes with them); from then on
+it is backtracked on ``E``. Convergence: targets reached and ``‖p_f‖_∞ / Δt`` below the tolerance (IPC).
+
+Precision: float64 throughout; contact distances of ``d̂ = 1`` mm on coordinates of 1 m need it (float32
+resolves about 1e-7 m, the barrier's curvature near contact spans ten orders of magnitude).
+
+Linear solver: a direct sparse LU (SciPy's SuperLU on the host; SPD matrices, symmetric mode) on the CPU, and
+conjugate gradients with a 3×3 block-Jacobi preconditioner on torch's sparse CSR matrices (cuSPARSE) on CUDA,
+where a host round trip and a sequential factorisation would dominate. ``ClothConfig.linear_solver`` overrides.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import scipy.sparse
+import scipy.sparse.linalg
+import torch
+
+from kernels import backend, cloth
+from kernels.spatial_hash import SpatialHash
+
+__all__ = [
+    "ClothConfig",
+    "ClothControl",
+    "ClothEnergies",
+    "ClothState",
+    "SolverCloth",
+    "StepStats",
+    "bending_stiffness",
+    "barrier_stiffness",
+    "friction_potential",
+    "lumped_masses",
+]
+
+F64 = torch.float64
+DENSITY_RANGE = (200.0, 640.0)
+STIFFNESS_RANGE = (0.1, 8.0)
+PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
+
+
+@dataclass(frozen=True)
+class ClothConfig:
+    """Material, contact and solver settings of :class:`SolverCloth` (SI units; defaults: cotton, Appendix A.3).
+
+    Attributes:
+        density: volumetric density ``ρ``, kg/m³, in the paper's range 200–640 (areal density ``ρ h``).
+        kappa_s: membrane stiffness ``κ_s``, 1, in 0.1–8: Young's modulus ``E = κ_s · base_young``.
+        kappa_b: bending stiffness ``κ_b``, 1, in 0.1–8: hinge stiffness ``κ_b E h³ / (24 (1 − ν²))``.
+        base_young: base Young's modulus ``E₀``, Pa (C-IPC's isotropic cotton, 0.821 MPa).
+        poisson: Poisson's ratio ``ν``, in ``[0, 0.5)``.
+        thickness: sheet thickness ``h``, m.
+        contact_distance: barrier activation distance ``d̂``, m (paper: 1 mm).
+        barrier_stiffness: IPC barrier stiffness ``κ``, J/m⁴, fixed for the whole run; ``None`` takes C-IPC's
+            choice from the mean vertex mass (:func:`barrier_stiffness`).
+        friction: friction coefficient ``μ`` (paper: 0.2); 0 switches friction off.
+        friction_velocity: IPC's static-friction velocity ``ε_v``, m/s (C-IPC: 1e-3).
+        newton_tolerance: stop when ``‖p‖_∞ / Δt`` falls below this, m/s.
+        max_newton_iterations: cap on Newton iterations per step.
+        gravity: gravitational acceleration ``[3]``, m/s².
+        static: minimise ``Ψ − Σ m g·x`` without inertia or friction (a static equilibrium solve; needs
+            Dirichlet vertices); ``Δt`` then only scales the barrier stiffness and the tolerance.
+        linear_solver: ``"direct"`` (SuperLU on the host), ``"cg"`` (block-Jacobi CG in torch) or ``"auto"``
+            (direct on the CPU, CG on CUDA).
+        cg_tolerance: relative residual at which CG stops.
+        cg_max_iterations: cap on CG iterations per Newton iteration.
+        ccd_eta: ACCD's ``η``: a step may close at most ``1 − η`` of any pair's gap (Codim-IPC: 0.1).
+    """
+
+    density: float = 472.641509
+    kappa_s: float = 1.0
+    kappa_b: float = 1.0
+    base_young: float = 0.821e6
+    poisson: float = 0.243
+    thickness: float = 0.318e-3
+    contact_distance: float = 1e-3
+    barrier_stiffness: float | None = None
+    friction: float = 0.2
+    friction_velocity: float = 1e-3
+    newton_tolerance: float = 1e-2
+    max_newton_iterations: int = 50
+    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
+    static: bool = False
+    linear_solver: str = "auto"
+    cg_tolerance: float = 1e-8
+    cg_max_iterations: int = 5000
+    ccd_eta: float = 0.1
+
+    def __post_init__(self):
+        lo, hi = DENSITY_RANGE
+        if not lo <= self.density <= hi:
+            raise ValueError(
+                f"density ({self.density}) must lie in the paper's range {lo:g}–{hi:g} kg/m³ (volumetric, as in "
+                f"C-IPC); for another fabric change thickness or base_young instead"
+            )
+        lo, hi = STIFFNESS_RANGE
+        for name in ("kappa_s", "kappa_b"):
+            value = getattr(self, name)
+            if not lo <= value <= hi:
+                raise ValueError(f"{name} ({value}) must lie in the paper's range {lo:g}–{hi:g} (a multiplier)")
+        for name in ("base_young", "thickness", "contact_distance", "friction_velocity", "newton_tolerance"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0.0):
+                raise ValueError(f"{name} ({value}) must be a positive finite number")
+        if not 0.0 <= self.poisson < 0.5:
+            raise ValueError(f"poisson ({self.poisson}) must lie in [0, 0.5)")
+        if self.barrier_stiffness is not None and not self.barrier_stiffness > 0.0:
+            raise ValueError(f"barrier_stiffness ({self.barrier_stiffness}) must be positive, or None for C-IPC's")
+        if not self.friction >= 0.0:
+            raise ValueError(f"friction ({self.friction}) must be non-negative")
+        if self.max_newton_iterations < 1 or self.cg_max_iterations < 1:
+            raise ValueError("max_newton_iterations and cg_max_iterations must be at least 1")
+        if len(self.gravity) != 3:
+            raise ValueError(f"gravity must have 3 components, got {self.gravity}")
+        if self.linear_solver not in ("auto", "direct", "cg"):
+            raise ValueError(f"linear_solver ({self.linear_solver!r}) must be 'auto', 'direct' or 'cg'")
+        if not 0.0 < self.ccd_eta < 1.0:
+            raise ValueError(f"ccd_eta ({self.ccd_eta}) must lie in (0, 1)")
+
+    @property
+    def young(self) -> float:
+        """Membrane Young's modulus ``E = κ_s E₀``, Pa."""
+        return self.kappa_s * self.base_young
+
+
+@dataclass
+class ClothState:
+    """Garment state: positions ``x [V, 3]`` (m) and velocities ``v [V, 3]`` (m/s), float64 on the backend device."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+
+
+@dataclass
+class ClothControl:
+    """What moves the garment this step.
+
+    Attributes:
+        body_start: ``[B, 3]`` body collider vertices at the start of the step, m.
+        body_end: ``[B, 3]`` body collider vertices at the end of the step, m (linear motion in between).
+        boundary_index: ``[D]`` int64 garment vertices that follow their targets exactly (Dirichlet).
+        boundary_target: ``[D, 3]`` their positions at the end of the step, m.
+    """
+
+    body_start: torch.Tensor
+    body_end: torch.Tensor
+    boundary_index: torch.Tensor
+    boundary_target: torch.Tensor
+
+    @staticmethod
+    def free(device: torch.device | None = None) -> ClothControl:
+        """No body and no boundary vertices."""
+        empty = torch.zeros(0, 3, dtype=F64, device=device)
+        return ClothControl(empty, empty, torch.zeros(0, dtype=torch.int64, device=device), empty)
+
+
+@dataclass
+class StepStats:
+    """What one step did.
+
+    Attributes:
+        newton_iterations: Newton iterations taken.
+        converged: the tolerance was met with every kinematic vertex on its target.
+        min_distance_body: smallest garment–body distance among pairs within ``d̂`` after the step, m (inf if none).
+        min_distance_self: smallest garment–garment distance among non-adjacent pairs within ``d̂``, m (inf if none).
+        contacts: active barrier pairs after the step.
+        time: seconds spent per phase (:data:`PHASES`).
+    """
+
+    newton_iterations: int
+    converged: bool
+    min_distance_body: float
+    min_distance_self: float
+    contacts: int
+    time: dict[str, float] = field(default_factory=dict)
+
+
+class ClothEnergies(NamedTuple):
+    """Per-element energy evaluators (signatures of :func:`kernels.cloth.membrane_energy`, ``bending_energy``,
+    ``contact_energy``); the benchmark swaps in the autograd references."""
+
+    membrane: Callable = cloth.membrane_energy
+    bending: Callable = cloth.bending_energy
+    contact: Callable = cloth.contact_energy
+
+
+class _Pairs(NamedTuple):
+    """Contact candidates: ``pt [P, 4]``, ``ee [Q, 4]`` int32, and how many of each lead (garment–body first)."""
+
+    pt: torch.Tensor
+    ee: torch.Tensor
+    pt_body: int
+    ee_body: int
+
+
+class _Friction(NamedTuple):
+    """Lagged friction data of the contacts at the start of the step (IPC §5)."""
+
+    index: torch.Tensor  # [K, 4] long
+    weight: torch.Tensor  # [K, 4] closest-point weights: Δ = Σ w_i x_i is the gap vector
+    projector: torch.Tensor  # [K, 3, 3] I − n nᵀ
+    force: torch.Tensor  # [K] μ λ, N
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Material and contact parameters
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def lumped_masses(x: torch.Tensor, faces: torch.Tensor, areal_density: float) -> torch.Tensor:
+    """Lumped vertex masses ``m_i = ρ h Σ_{f ∋ i} A_f / 3`` (C-IPC's shell mass).
+
+    Args:
+        x: ``[V, 3]`` rest positions, m.
+        faces: ``[F, 3]`` vertex indices.
+        areal_density: ``ρ h``, kg/m².
+
+    Returns:
+        ``[V]`` masses, kg.
+    """
+    tri = x[faces.long()]
+    area = 0.5 * torch.linalg.norm(torch.linalg.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), dim=1)
+    mass = torch.zeros(x.shape[0], dtype=x.dtype, device=x.device)
+    return mass.index_add_(0, faces.long().reshape(-1), (areal_density * area / 3.0).repeat_interleave(3))
+
+
+def bending_stiffness(config: ClothConfig) -> float:
+    """Hinge stiffness ``k = κ_b E h³ / (24 (1 − ν²))``, J, with ``E = κ_s E₀`` (C-IPC, PhysAvatar's κ_b; §3.2).
+
+    The hinge energy is ``k w̄ (θ − θ̄)²`` (:func:`kernels.cloth.bending_energy`); on a square grid bent about a
+    grid axis its continuum limit has bending rigidity ``6 k`` per unit width (``4.8 k`` for a free strip).
+    """
+    e, h, nu = config.young, config.thickness, config.poisson
+    return config.kappa_b * e * h**3 / (24.0 * (1.0 - nu * nu))
+
+
+def barrier_stiffness(config: ClothConfig, mean_mass: float, dt: float) -> float:
+    """IPC barrier stiffness ``κ``, J/m⁴: the configured one, or C-IPC's rule from the mean vertex mass.
+
+    C-IPC sets the barrier's curvature in the distance at a separation of 10⁻⁸ m, ``4·10⁻¹⁶ b″(10⁻¹⁶)``, to
+    ``3·10¹¹ m̄`` in the incremental potential; here the barrier enters as ``Δt² κ B``, hence the ``Δt²``.
+    """
+    if config.barrier_stiffness is not None:
+        return config.barrier_stiffness
+    dhat2 = config.contact_distance**2
+    d = torch.tensor([1e-16], dtype=F64, device=backend.torch_device())
+    curvature = float(cloth.barrier(d, dhat2)[2][0])
+    return 3.0e11 * mean_mass / (dt * dt * 4.0e-16 * curvature)
+
+
+def friction_potential(
+    displacement: torch.Tensor, friction: _Friction, eps: float, hessian: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """IPC's smoothed lagged friction potential ``D = Σ_k μλ_k f₀(‖u_k‖)`` (Li et al. 2020, Eq. 14–16).
+
+    ``u_k = P_k Σ_i w_ki Δx_i`` is the tangential relative displacement of contact ``k`` since the start of the
+    step (``P_k = I − n_k n_kᵀ``, weights and normal lagged). ``f₀(y) = −y³/(3ε²) + y²/ε + ε/3`` below
+    ``ε = ε_v Δt``, else ``y``; ``f₁ = f₀′``. Gradient ``w_i μλ (f₁/y) u``; Hessian blocks
+    ``w_i w_j μλ ((f₁/y) P + c u uᵀ)`` with ``c = −1/(ε² y)`` below ``ε`` and ``−1/y³`` above: PSD on both sides.
+
+    Args:
+        displacement: ``[N, 3]`` displacement of every vertex since the start of the step, m.
+        friction: lagged contacts.
+        eps: ``ε_v Δt``, m.
+        hessian: also return the ``[K, 12, 12]`` Hessians.
+
+    Returns:
+        ``(energy [K] (J), grad [K, 4, 3] (N), hess [K, 12, 12] or None)``.
+    """
+    w = friction.weight
+    u = torch.einsum("kab,kb->ka", friction.projector, (w[:, :, None] * displacement[friction.index]).sum(1))
+    y = torch.linalg.norm(u, dim=1)
+    inside = y < eps
+    f0 = torch.where(inside, -(y**3) / (3 * eps * eps) + y * y / eps + eps / 3.0, y)
+    f1_over_y = torch.where(inside, 2.0 / eps - y / (eps * eps), 1.0 / y.clamp_min(eps))
+    force = friction.force
+    grad = (force * f1_over_y)[:, None, None] * w[:, :, None] * u[:, None, :]
+    hess = None
+    if hessian:
+        safe_y = y.clamp_min(1e-300)
+        c = torch.where(inside, -1.0 / (eps * eps * safe_y), -1.0 / safe_y**3)
+        c = torch.where(y > 0, c, torch.zeros_like(c))
+        block = f1_over_y[:, None, None] * friction.projector + c[:, None, None] * u[:, :, None] * u[:, None, :]
+        block = force[:, None, None] * block
+        hess = (w[:, :, None, None, None] * w[:, None, :, None, None] * block[:, None, None]).permute(0, 1, 3, 2, 4)
+        hess = hess.reshape(-1, 12, 12)
+    return force * f0, grad, hess
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Closest points of contact pairs (friction's lagged tangent bases)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _point_triangle_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+    """Weights ``w [P, 4]`` with ``Σ w_i q_i`` = point minus its closest triangle point, by closest-feature type."""
+    p, t = q[:, 0], q[:, 1:]
+    n = q.shape[0]
+    w = torch.zeros(n, 4, dtype=q.dtype, device=q.device)
+    w[:, 0] = 1.0
+    rows = torch.arange(n, device=q.device)
+    k = kind.long()
+    vertex = k <= 2
+    w[rows[vertex], 1 + k[vertex]] = -1.0
+    edge = (k >= 3) & (k <= 5)
+    a = (k - 3).clamp(0, 2)
+    b = (a + 1) % 3
+    ta, tb = t[rows, a], t[rows, b]
+    e = tb - ta
+    s = (((p - ta) * e).sum(1) / (e * e).sum(1)).clamp(0.0, 1.0)
+    w[rows[edge], 1 + a[edge]] = -(1.0 - s[edge])
+    w[rows[edge], 1 + b[edge]] = -s[edge]
+    face = k == 6
+    e1, e2, r = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], p - t[:, 0]
+    a11, a12, a22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = (r * e1).sum(1), (r * e2).sum(1)
+    det = a11 * a22 - a12 * a12
+    beta1 = (a22 * r1 - a12 * r2) / det
+    beta2 = (a11 * r2 - a12 * r1) / det
+    w[face, 1] = -(1.0 - beta1[face] - beta2[face])
+    w[face, 2] = -beta1[face]
+    w[face, 3] = -beta2[face]
+    return w
+
+
+def _edge_edge_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
+    """Weights ``w [Q, 4]`` with ``Σ w_i q_i`` = closest point of edge a minus that of edge b, by type."""
+    n = q.shape[0]
+    rows = torch.arange(n, device=q.device)
+    k = kind.long()
+    w = torch.zeros(n, 4, dtype=q.dtype, device=q.device)
+    ends = k <= 3
+    w[rows[ends], (k // 2)[ends]] = 1.0
+    w[rows[ends], (k % 2 + 2)[ends]] = -1.0
+    da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
+    # an end point of b against edge a (types 4, 5)
+    on_a = (k == 4) | (k == 5)
+    pb = q[rows, (k - 2).clamp(2, 3)]
+    s = (((pb - q[:, 0]) * da).sum(1) / (da * da).sum(1)).clamp(0.0, 1.0)
+    w[on_a, 0] = 1.0 - s[on_a]
+    w[on_a, 1] = s[on_a]
+    w[rows[on_a], (k - 2)[on_a].clamp(2, 3)] = -1.0
+    # an end point of a against edge b (types 6, 7)
+    on_b = (k == 6) | (k == 7)
+    pa = q[rows, (k - 6).clamp(0, 1)]
+    t = (((pa - q[:, 2]) * db).sum(1) / (db * db).sum(1)).clamp(0.0, 1.0)
+    w[rows[on_b], (k - 6)[on_b].clamp(0, 1)] = 1.0
+    w[on_b, 2] = -(1.0 - t[on_b])
+    w[on_b, 3] = -t[on_b]
+    # interior line-line (type 8)
+    line = k == 8
+    r = q[:, 0] - q[:, 2]
+    a, e, b = (da * da).sum(1), (db * db).sum(1), (da * db).sum(1)
+    c, f = (da * r).sum(1), (db * r).sum(1)
+    den = (a * e - b * b).clamp_min(torch.finfo(q.dtype).tiny)
+    s_l, t_l = (b * f - c * e) / den, (a * f - b * c) / den
+    w[line, 0] = 1.0 - s_l[line]
+    w[line, 1] = s_l[line]
+    w[line, 2] = -(1.0 - t_l[line])
+    w[line, 3] = -t_l[line]
+    return w
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Broad phase
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def _overlaps(q_lo, q_hi, p_lo, p_hi) -> tuple[torch.Tensor, torch.Tensor]:
+    """Index pairs ``(i, j)`` of query boxes ``i`` and primitive boxes ``j`` that overlap (float64 boxes).
+
+    A hash grid over the primitive box centres finds every primitive whose centre lies within the sum of the
+    largest half-diagonals of the two sets; the exact box test then filters.
+    """
+    empty = torch.zeros(0, dtype=torch.int64, device=q_lo.device)
+    if q_lo.shape[0] == 0 or p_lo.shape[0] == 0:
+        return empty, empty
+    p_center, q_center = 0.5 * (p_lo + p_hi), 0.5 * (q_lo + q_hi)
+    reach = float(torch.linalg.norm(p_hi - p_lo, dim=1).max() + torch.linalg.norm(q_hi - q_lo, dim=1).max()) * 0.5
+    scale = float(torch.cat([p_center, q_center]).abs().max())
+    radius = reach * (1.0 + 1e-5) + 1e-6 * (1.0 + scale)  # float32 rounding of the centres
+    grid = SpatialHash(p_center.float().contiguous(), radius)
+    queries = q_center.float().contiguous()
+    capacity = 32
+    index, count = grid.radius_neighbours(queries, radius, capacity)
+    most = int(count.max())
+    if most > capacity:
+        index, count = grid.radius_neighbours(queries, radius, most)
+    valid = index >= 0
+    i = torch.arange(q_lo.shape[0], device=q_lo.device)[:, None].expand_as(index)[valid]
+    j = index[valid].long()
+    keep = ((q_lo[i] <= p_hi[j]) & (p_lo[j] <= q_hi[i])).all(1)
+    return i[keep], j[keep]
+
+
+def _parallel(X: torch.Tensor, ee: torch.Tensor, sin2: float = 1e-8) -> torch.Tensor:
+    """Edge pairs closer to parallel than ``sin²θ < 10⁻⁸``.
+
+    Their distance is the smallest end point–segment distance, which the point–triangle pairs of the edges'
+    triangles already bound; the edge-edge kernels classify such pairs by a machine-epsilon test and can
+    report a line-line distance of 0 for parallel, separated edges, so they are left out of the edge-edge set.
+    """
+    q = X[ee]
+    da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
+    cross = (torch.linalg.cross(da, db) ** 2).sum(1)
+    return cross < sin2 * (da * da).sum(1) * (db * db).sum(1)
+
+
+def _boxes(lo: torch.Tensor, hi: torch.Tensor, prims: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    return lo[prims].amin(1), hi[prims].amax(1)
+
+
+def _unique_edges(faces: torch.Tensor) -> torch.Tensor:
+    f = faces.long()
+    e = torch.cat([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]).sort(dim=1).values
+    return torch.unique(e, dim=0)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Solver
+# ---------------------------------------------------------------------------------------------------------------
+
+
+class SolverCloth:
+    """Codim-IPC garment simulator (PhysAvatar §3.2, Appendix A.3): one implicit step per frame.
+
+    Args:
+        vertices: ``[V, 3]`` garment rest positions, m (the rest shape of membrane and bending).
+        faces: ``[F, 3]`` garment triangles, consistently oriented, manifold.
+        config: material and solver settings.
+        body_faces: ``[Fb, 3]`` body collider triangles indexing ``ClothControl.body_start``; may be empty.
+        energies: element evaluators (default: the Warp kernels of :mod:`kernels.cloth`).
+
+    Raises:
+        ValueError: malformed meshes; a non-manifold or inconsistently oriented garment (from
+            :func:`kernels.cloth.hinges_from_faces`).
+    """
+
+    def __init__(
+        self,
+        vertices: torch.Tensor,
+        faces: torch.Tensor,
+        config: ClothConfig,
+        body_faces: torch.Tensor,
+        energies: ClothEnergies | None = None,
+    ):
+        device = backend.torch_device()
+        if vertices.dim() != 2 or vertices.shape[1] != 3 or vertices.shape[0] < 3:
+            raise ValueError(f"vertices must be a [V, 3] tensor with V >= 3, got {tuple(vertices.shape)}")
+        for name, f in (("faces", faces), ("body_faces", body_faces)):
+            if f.dim() != 2 or f.shape[1] != 3 or f.dtype.is_floating_point:
+                raise ValueError(f"{name} must be an integer [F, 3] tensor, got {f.dtype} {tuple(f.shape)}")
+        if faces.shape[0] == 0 or int(faces.min()) < 0 or int(faces.max()) >= vertices.shape[0]:
+            raise ValueError("faces must be non-empty and index the garment vertices")
+        self.config = config
+        self.energies = energies or ClothEnergies()
+        self.vertex_count = vertices.shape[0]
+        self.body_vertex_count = int(body_faces.max()) + 1 if body_faces.numel() else 0
+        self.x_rest = vertices.to(device, F64).contiguous()
+        self.faces = faces.to(device, torch.int32).contiguous()
+        self.hinges, _ = cloth.hinges_from_faces(self.faces)
+        self.rest = cloth.rest_state(self.x_rest, self.faces, self.hinges)
+        self.mass = lumped_masses(self.x_rest, self.faces, config.density * config.thickness)
+        mu, lam = cloth.plane_stress_lame(config.young, config.poisson, config.thickness)
+        self.membrane_mu, self.membrane_lambda = mu, lam
+        self.k_bend = bending_stiffness(config)
+        self.gravity = torch.tensor(config.gravity, dtype=F64, device=device)
+        self.edges = _unique_edges(self.faces)
+        v = self.vertex_count
+        self.body_faces = (body_faces.to(device).long() + v).contiguous()
+        self.body_edges = _unique_edges(body_faces.to(device)) + v if body_faces.numel() else self.edges[:0]
+        solver = config.linear_solver
+        self.linear_solver = ("cg" if device.type == "cuda" else "direct") if solver == "auto" else solver
+        self._checked_inside = False
+
+    def initial_state(self) -> ClothState:
+        """The rest shape at rest."""
+        return ClothState(self.x_rest.clone(), torch.zeros_like(self.x_rest))
+
+    # -- one step ---------------------------------------------------------------------------------------------
+
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+        """Advance the garment by ``dt`` seconds (one implicit Euler step of the incremental potential).
+
+        Args:
+            state_in: garment state at the start of the step.
+            state_out: receives the state at the end of the step (may be ``state_in``).
+            control: body collider motion and Dirichlet targets of this step.
+            dt: step size, s (paper: 0.04).
+
+        Returns:
+            :class:`StepStats`.
+
+        Raises:
+            ValueError: malformed inputs, a static solve without boundary vertices, or a garment that starts
+                inside or touching the body collider.
+        """
+        cfg = self.config
+        timing = dict.fromkeys(PHASES, 0.0)
+        x_start, b0, b1, fixed, target_fixed = self._check_step(state_in, control, dt)
+        v, nb = self.vertex_count, self.body_vertex_count
+        device = x_start.device
+        X = torch.cat([x_start, b0]).contiguous()
+        X_start = X.clone()
+        kinematic = torch.zeros(v + nb, dtype=torch.bool, device=device)
+        kinematic[fixed] = True
+        kinematic[v:] = True
+        target = X.clone()
+        target[fixed] = target_fixed
+        target[v:] = b1
+        dof = torch.full((v + nb,), -1, dtype=torch.int64, device=device)
+        free = (~kinematic).nonzero().squeeze(1)
+        dof[free] = torch.arange(free.numel(), device=device)
+        x_hat = x_start + dt * state_in.v + dt * dt * self.gravity
+        kappa = barrier_stiffness(cfg, float(self.mass.mean()), dt)
+        x_rest_all = torch.cat([self.x_rest, b0])
+        ctx = _StepContext(dt, kappa, X_start, x_hat, x_rest_all, kinematic, dof, free, None)
+
+        start = time.perf_counter()
+        pairs = self._broad_phase(X, torch.zeros_like(X), ctx)
+        timing["broad_phase"] += time.perf_counter() - start
+        self._check_separated(X, pairs, b0)
+        if cfg.friction > 0.0 and not cfg.static:
+            start = time.perf_counter()
+            ctx = ctx._replace(friction=self._lagged_friction(X, pairs, ctx))
+            timing["friction"] += time.perf_counter() - start
+
+        converged = False
+        iterations = 0
+        for _ in range(cfg.max_newton_iterations):
+            iterations += 1
+            start = time.perf_counter()
+            energy, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx, hessian=True)
+            p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
+            rows, cols, blocks, rhs = self._assemble(elements, grad, p_kin, ctx)
+            timing["assemble"] += time.perf_counter() - start
+            start = time.perf_counter()
+            p_free = self._solve(rows, cols, blocks, rhs, free.numel())
+            timing["solve"] += time.perf_counter() - start
+            p = p_kin.clone()
+            p[free] = p_free.view(-1, 3)
+            reached = bool((p_kin == 0).all())
+            if reached and (float(p_free.abs().max()) if p_free.numel() else 0.0) / dt < cfg.newton_tolerance:
+                converged = True
+                break
+            start = time.perf_counter()
+            pairs = self._broad_phase(X, p, ctx)
+            timing["broad_phase"] += time.perf_counter() - start
+            start = time.perf_counter()
+            alpha = self._ccd_bound(X, p, pairs)
+            timing["ccd"] += time.perf_counter() - start
+            start = time.perf_counter()
+            if reached:
+                while alpha > 1e-12:
+                    trial = X + alpha * p
+                    trial_energy = self._potential(trial, self._near(trial, pairs, ctx), ctx, hessian=False)[0]
+                    if trial_energy <= energy:
+                        break
+                    alpha *= 0.5
+            timing["line_search"] += time.perf_counter() - start
+            if alpha <= 1e-12:
+                break
+            X = X + alpha * p
+            if alpha == 1.0:
+                X[kinematic] = target[kinematic]
+
+        state_out.x = X[:v].clone()
+        state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
+        near = self._near(X, pairs, ctx)
+        d_body, d_self, contacts = self._min_distances(X, near)
+        return StepStats(iterations, converged, d_body, d_self, contacts, timing)
+
+    # -- pieces of a step -------------------------------------------------------------------------------------
+
+    def _check_step(self, state_in: ClothState, control: ClothControl, dt: float):
+        device = backend.torch_device()
+        v, nb = self.vertex_count, self.body_vertex_count
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt ({dt}) must be a positive number of seconds (paper: 0.04)")
+        for name, t in (("state_in.x", state_in.x), ("state_in.v", state_in.v)):
+            if tuple(t.shape) != (v, 3):
+                raise ValueError(f"{name} must have shape [{v}, 3], got {list(t.shape)}")
+            if not bool(torch.isfinite(t).all()):
+                raise ValueError(f"{name} holds NaN or inf values")
+        for name, t in (("control.body_start", control.body_start), ("control.body_end", control.body_end)):
+            if tuple(t.shape) != (nb, 3):
+                raise ValueError(f"{name} must have shape [{nb}, 3] (the body mesh's vertices), got {list(t.shape)}")
+        fixed = control.boundary_index.to(device).long()
+        if fixed.dim() != 1 or tuple(control.boundary_target.shape) != (fixed.numel(), 3):
+            raise ValueError("boundary_index must be [D] and boundary_target [D, 3]")
+        if fixed.numel() and (int(fixed.min()) < 0 or int(fixed.max()) >= v):
+            raise ValueError(f"boundary_index must index garment vertices 0..{v - 1}")
+        if fixed.numel() != torch.unique(fixed).numel():
+            raise ValueError("boundary_index holds repeated vertices; pass each Dirichlet vertex once")
+        if self.config.static and fixed.numel() == 0:
+            raise ValueError(
+                "a static solve needs boundary vertices: with boundary_index empty the garment has no equilibrium "
+                "under gravity; pin the vertices attached to the body (e.g. the shoulder region)"
+            )
+        x = state_in.x.to(device, F64).contiguous()
+        b0 = control.body_start.to(device, F64).contiguous()
+        b1 = control.body_end.to(device, F64).contiguous()
+        return x, b0, b1, fixed, control.boundary_target.to(device, F64)
+
+    def _check_separated(self, X: torch.Tensor, pairs: _Pairs, b0: torch.Tensor) -> None:
+        """Refuse a start state that touches the body or lies inside it (the barrier needs a positive gap)."""
+        v = self.vertex_count
+        if not self._checked_inside and self.body_faces.numel():
+            inside = _winding_number(X[:v], b0, self.body_faces - v) > 0.5
+            if bool(inside.any()):
+                raise ValueError(
+                    f"{int(inside.sum())} garment vertices start inside the body collider (e.g. vertex "
+                    f"{int(inside.nonzero()[0])}); place the garment outside the body, at least d̂ away"
+                )
+            self._checked_inside = True
+        d_body, d_self, _ = self._min_distances(X, pairs)
+        if not (d_body > 0.0 and d_self > 0.0):
+            raise ValueError(
+                "the garment touches or intersects "
+                + ("the body" if not d_body > 0.0 else "itself")
+                + " at the start of the step; start from an intersection-free state"
+            )
+
+    def _broad_phase(self, X: torch.Tensor, p: torch.Tensor, ctx: _StepContext) -> _Pairs:
+        """Contact candidates whose boxes, swept over ``X → X + p`` and grown by ``d̂``, overlap (IPC)."""
+        v = self.vertex_count
+        dhat = self.config.contact_distance
+        lo, hi = torch.minimum(X, X + p), torch.maximum(X, X + p)
+        q_lo, q_hi = lo - dhat, hi + dhat
+        tri_lo, tri_hi = _boxes(lo, hi, self.faces.long())
+        edge_lo, edge_hi = _boxes(lo, hi, self.edges)
+        pieces_pt, pieces_ee = [], []
+        # garment vertices against body triangles, body vertices against garment triangles
+        if self.body_vertex_count:
+            body_lo, body_hi = _boxes(lo, hi, self.body_faces)
+            i, j = _overlaps(q_lo[:v], q_hi[:v], body_lo, body_hi)
+            pieces_pt.append(torch.cat([i[:, None], self.body_faces[j]], 1))
+            i, j = _overlaps(q_lo[v:], q_hi[v:], tri_lo, tri_hi)
+            pieces_pt.append(torch.cat([(i + v)[:, None], self.faces.long()[j]], 1))
+            bedge_lo, bedge_hi = _boxes(q_lo, q_hi, self.body_edges)
+            i, j = _overlaps(bedge_lo, bedge_hi, edge_lo, edge_hi)
+            pieces_ee.append(torch.cat([self.edges[j], self.body_edges[i]], 1))
+        pt_body = sum(t.shape[0] for t in pieces_pt)
+        ee_body = sum(t.shape[0] for t in pieces_ee)
+        # self contact, excluding primitives that share a vertex
+        i, j = _overlaps(q_lo[:v], q_hi[:v], tri_lo, tri_hi)
+        tri = self.faces.long()[j]
+        keep = (tri != i[:, None]).all(1)
+        pieces_pt.append(torch.cat([i[keep, None], tri[keep]], 1))
+        qe_lo, qe_hi = _boxes(q_lo, q_hi, self.edges)
+        i, j = _overlaps(qe_lo, qe_hi, edge_lo, edge_hi)
+        a, b = self.edges[i], self.edges[j]
+        keep = (i < j) & (a[:, :, None] != b[:, None, :]).all(2).all(1)
+        pieces_ee.append(torch.cat([a[keep], b[keep]], 1))
+        pt = torch.cat(pieces_pt)
+        ee = torch.cat(pieces_ee)
+        ee = ee[~(_parallel(X, ee) & _parallel(X + p, ee))]
+        # pairs whose four vertices are all kinematic cannot be resolved by the garment: leave them out
+        pt_keep = ~ctx.kinematic[pt].all(1)
+        ee_keep = ~ctx.kinematic[ee].all(1)
+        return _Pairs(
+            pt[pt_keep].to(torch.int32).contiguous(),
+            ee[ee_keep].to(torch.int32).contiguous(),
+            int(pt_keep[:pt_body].sum()),
+            int(ee_keep[:ee_body].sum()),
+        )
+
+    def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
+        """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
+        dhat = self.config.contact_distance
+
+        def keep(index: torch.Tensor, split: int) -> torch.Tensor:
+            q = X[index.long()]
+            a_lo, a_hi = q[:, :split].amin(1) - dhat, q[:, :split].amax(1) + dhat
+            b_lo, b_hi = q[:, split:].amin(1), q[:, split:].amax(1)
+            return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
+
+        pt_keep, ee_keep = keep(pairs.pt, 1), keep(pairs.ee, 2)
+        return _Pairs(
+            pairs.pt[pt_keep].contiguous(),
+            pairs.ee[ee_keep].contiguous(),
+            int(pt_keep[: pairs.pt_body].sum()),
+            int(ee_keep[: pairs.ee_body].sum()),
+        )
+
+    def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> float:
+        """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021)."""
+        eta = self.config.ccd_eta
+        alpha = 1.0
+        if pairs.pt.shape[0]:
+            alpha = min(alpha, float(cloth.point_triangle_ccd(X, p, pairs.pt, eta=eta).min()))
+        if pairs.ee.shape[0]:
+            alpha = min(alpha, float(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta).min()))
+        return alpha
+
+    def _potential(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext, hessian: bool):
+        """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (PSD-projected).
+
+        Returns ``(energy, grad, elements)`` with ``elements`` a list of ``(vertex index [N, k], hess [N, 3k, 3k])``.
+        """
+        cfg, dt2 = self.config, ctx.dt * ctx.dt
+        v = self.vertex_count
+        x = X[:v].contiguous()
+        grad = torch.zeros_like(X)
+        elements: list[tuple[torch.Tensor, torch.Tensor]] = []
+        free_mask = ~ctx.kinematic[:v]
+        energy = torch.zeros((), dtype=F64, device=X.device)
+
+        def add(index: torch.Tensor, terms, scale: float) -> None:
+            nonlocal energy
+            energy = energy + scale * terms.energy.sum()
+            grad.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
+            if hessian:
+                elements.append((index, scale * terms.hess))
+
+        if cfg.static:
+            energy = energy - dt2 * (self.mass[:, None] * self.gravity * x).sum()
+            grad[:v] -= dt2 * self.mass[:, None] * self.gravity
+        else:
+            r = (x - ctx.x_hat) * free_mask[:, None]
+            energy = energy + 0.5 * (self.mass[:, None] * r * r).sum()
+            grad[:v] += self.mass[:, None] * r
+        e = self.energies
+        add(
+            self.faces.long(),
+            e.membrane(
+                x,
+                self.faces,
+                self.rest.rest_inv,
+                self.rest.rest_area,
+                self.membrane_mu,
+                self.membrane_lambda,
+                project=hessian,
+            ),
+            dt2,
+        )
+        add(
+            self.hinges.long(),
+            e.bending(x, self.hinges, self.rest.rest_angle, self.rest.rest_weight, self.k_bend, project=hessian),
+            dt2,
+        )
+        if near.pt.shape[0] or near.ee.shape[0]:
+            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
+            pt, ee = e.contact(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa, project=False)
+            for index, terms in ((near.pt, pt), (near.ee, ee)):
+                active = terms.energy > 0.0
+                if bool(active.any()):
+                    hess = cloth.project_psd(terms.hess[active]) if hessian else terms.hess[active]
+                    add(index.long()[active], cloth.ElementTerms(terms.energy[active], terms.grad[active], hess), dt2)
+        if ctx.friction is not None and ctx.friction.index.shape[0]:
+            f_energy, f_grad, f_hess = friction_potential(
+                X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, hessian
+            )
+            add(ctx.friction.index, cloth.ElementTerms(f_energy, f_grad, f_hess), dt2)
+        return energy, grad, elements
+
+    def _assemble(self, elements, grad: torch.Tensor, p_kin: torch.Tensor, ctx: _StepContext):
+        """Free-free Hessian blocks (COO, 3×3) and the right-hand side ``−g_f − H_fk p_k``."""
+        dof = ctx.dof
+        n = ctx.free.numel()
+        rhs = -grad[ctx.free].clone()
+        rows, cols, blocks = [], [], []
+        for index, hess in elements:
+            k = index.shape[1]
+            hb = hess.view(-1, k, 3, k, 3).permute(0, 1, 3, 2, 4)
+            ri = index[:, :, None].expand(-1, k, k)
+            ci = index[:, None, :].expand(-1, k, k)
+            fr, fc = dof[ri], dof[ci]
+            both = (fr >= 0) & (fc >= 0)
+            rows.append(fr[both])
+            cols.append(fc[both])
+            blocks.append(hb[both])
+            coupled = (fr >= 0) & (fc < 0)
+            if bool(coupled.any()):
+                push = torch.einsum("nij,nj->ni", hb[coupled], p_kin[ci[coupled]])
+                rhs.index_add_(0, fr[coupled], -push)
+        if not self.config.static:
+            idx = torch.arange(n, device=grad.device)
+            mass = self.mass[ctx.free]
+            rows.append(idx)
+            cols.append(idx)
+            blocks.append(mass[:, None, None] * torch.eye(3, dtype=F64, device=grad.device))
+        return torch.cat(rows), torch.cat(cols), torch.cat(blocks), rhs.reshape(-1)
+
+    def _solve(self, rows, cols, blocks, rhs, n: int) -> torch.Tensor:
+        """Solve ``H p = rhs`` for the free DOFs (``H`` SPD, given as 3×3 COO blocks)."""
+        if n == 0:
+            return rhs.new_zeros(0)
+        i = torch.arange(3, device=rows.device)
+        r = (3 * rows[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
+        c = (3 * cols[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
+        vals = blocks.reshape(-1)
+        if self.linear_solver == "direct":
+            h = scipy.sparse.csc_matrix((vals.cpu().numpy(), (r.cpu().numpy(), c.cpu().numpy())), shape=(3 * n, 3 * n))
+            lu = scipy.sparse.linalg.splu(h, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
+            return torch.from_numpy(lu.solve(rhs.cpu().numpy())).to(rhs.device)
+        return _block_jacobi_cg(
+            r, c, vals, rows, cols, blocks, rhs, n, self.config.cg_tolerance, self.config.cg_max_iterations
+        )
+
+    def _lagged_friction(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Friction:
+        """Normal forces ``λ_k``, closest-point weights and tangent projectors of the contacts at ``x^t`` (IPC §5)."""
+        near = self._near(X, pairs, ctx)
+        dhat2 = self.config.contact_distance**2
+        pieces = []
+        if near.pt.shape[0]:
+            kind, terms = cloth.point_triangle_distance(X, near.pt)
+            q = X[near.pt.long()]
+            weight = _point_triangle_weights(q, kind)
+            pieces.append((near.pt.long(), terms.energy, weight, torch.ones_like(terms.energy)))
+        if near.ee.shape[0]:
+            kind, terms = cloth.edge_edge_distance(X, near.ee)
+            q = X[near.ee.long()]
+            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
+            c = (torch.linalg.cross(q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]) ** 2).sum(1)
+            mollifier = torch.where(c < eps_x, (2.0 - c / eps_x) * c / eps_x, torch.ones_like(c))
+            pieces.append((near.ee.long(), terms.energy, _edge_edge_weights(q, kind), mollifier))
+        empty = X.new_zeros(0)
+        if not pieces:
+            return _Friction(
+                torch.zeros(0, 4, dtype=torch.int64, device=X.device), empty.view(0, 4), empty.view(0, 3, 3), empty
+            )
+        index = torch.cat([p[0] for p in pieces])
+        d = torch.cat([p[1] for p in pieces])
+        weight = torch.cat([p[2] for p in pieces])
+        mollifier = torch.cat([p[3] for p in pieces])
+        active = d < dhat2
+        index, d, weight, mollifier = index[active], d[active], weight[active], mollifier[active]
+        _, b1, _ = cloth.barrier(d.contiguous(), dhat2)
+        # λ = −∂(κ m b)/∂dist = −κ m b′(d) 2√d, the normal force of the contact, N
+        force = self.config.friction * (-ctx.kappa * mollifier * b1 * 2.0 * torch.sqrt(d))
+        gap = (weight[:, :, None] * X[index]).sum(1)
+        normal = gap / torch.linalg.norm(gap, dim=1, keepdim=True)
+        projector = torch.eye(3, dtype=F64, device=X.device) - normal[:, :, None] * normal[:, None, :]
+        return _Friction(index, weight, projector, force)
+
+    def _min_distances(self, X: torch.Tensor, pairs: _Pairs) -> tuple[float, float, int]:
+        """Smallest garment–body and garment–garment distances among the pairs, m, and the pairs within ``d̂``."""
+        dhat2 = self.config.contact_distance**2
+        d_pt = cloth.point_triangle_distance(X, pairs.pt)[1].energy if pairs.pt.shape[0] else X.new_zeros(0)
+        d_ee = cloth.edge_edge_distance(X, pairs.ee)[1].energy if pairs.ee.shape[0] else X.new_zeros(0)
+        body = torch.cat([d_pt[: pairs.pt_body], d_ee[: pairs.ee_body]])
+        own = torch.cat([d_pt[pairs.pt_body :], d_ee[pairs.ee_body :]])
+        contacts = int((body < dhat2).sum() + (own < dhat2).sum())
+
+        def smallest(d: torch.Tensor) -> float:
+            return math.sqrt(max(float(d.min()), 0.0)) if d.numel() else math.inf
+
+        return smallest(body), smallest(own), contacts
+
+
+class _StepContext(NamedTuple):
+    dt: float
+    kappa: float
+    x_start: torch.Tensor  # [V + B, 3] positions at the start of the step
+    x_hat: torch.Tensor  # [V, 3] inertial target
+    x_rest: torch.Tensor  # [V + B, 3] rest positions (mollifier thresholds)
+    kinematic: torch.Tensor  # [V + B] bool
+    dof: torch.Tensor  # [V + B] free index or −1
+    free: torch.Tensor  # [n] free vertices
+    friction: _Friction | None
+
+
+def _block_jacobi_cg(r, c, vals, rows, cols, blocks, rhs, n, tol, max_iterations) -> torch.Tensor:
+    """Conjugate gradients on the sparse SPD ``H`` with the inverse 3×3 diagonal blocks as preconditioner."""
+    h = torch.sparse_coo_tensor(torch.stack([r, c]), vals, (3 * n, 3 * n)).coalesce().to_sparse_csr()
+    diag = rows == cols
+    d = torch.zeros(n, 3, 3, dtype=vals.dtype, device=vals.device).index_add_(0, rows[diag], blocks[diag])
+    d_inv = torch.linalg.inv(d)
+
+    def precondition(res: torch.Tensor) -> torch.Tensor:
+        return torch.bmm(d_inv, res.view(n, 3, 1)).reshape(-1)
+
+    x = torch.zeros_like(rhs)
+    res = rhs.clone()
+    z = precondition(res)
+    p = z.clone()
+    rz = torch.dot(res, z)
+    stop = tol * tol * float(torch.dot(rhs, rhs))
+    for _ in range(max_iterations):
+        hp = torch.mv(h, p)
+        step = rz / torch.dot(p, hp)
+        x += step * p
+        res -= step * hp
+        if float(torch.dot(res, res)) <= stop:
+            break
+        z = precondition(res)
+        rz_next = torch.dot(res, z)
+        p = z + (rz_next / rz) * p
+        rz = rz_next
+    return x
+
+
+def _winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Generalised winding number of a triangle mesh at each point (solid angles, Van Oosterom and Strackee 1983).
+
+    Args:
+        points: ``[N, 3]``, m.
+        vertices: ``[B, 3]``, m.
+        faces: ``[F, 3]`` outward-oriented triangles.
+
+    Returns:
+        ``[N]``: 1 inside a closed mesh, 0 outside.
+    """
+    tri = vertices[faces]
+    out = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
+    chunk = max(1, (1 << 22) // max(1, faces.shape[0]))
+    for s in range(0, points.shape[0], chunk):
+        rel = tri[None] - points[s : s + chunk, None, None, :]
+        a, b, c = rel[..., 0, :], rel[..., 1, :], rel[..., 2, :]
+        la, lb, lc = (torch.linalg.norm(t, dim=-1) for t in (a, b, c))
+        num = (a * torch.linalg.cross(b, c)).sum(-1)
+        den = la * lb * lc + (a * b).sum(-1) * lc + (b * c).sum(-1) * la + (c * a).sum(-1) * lb
+        out[s : s + chunk] = torch.atan2(num, den).sum(1) / (2.0 * math.pi)
+    return out
