@@ -1,0 +1,211 @@
+import math
+
+import pytest
+import torch
+
+from kernels import backend
+from kernels.reference.volume_render import composite_torch, march_rays_torch
+from kernels.volume_render import (
+    DEFAULT_TRANSMITTANCE_THRESHOLD,
+    composite,
+    composite_backward,
+    composite_forward,
+    march_rays,
+)
+
+AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _packed(counts: list[int], seed: int = 0, sigma_scale: float = 20.0):
+    """Random packed samples for rays with the given sample counts (zeros give empty rays)."""
+    generator = torch.Generator().manual_seed(seed)
+    samples = sum(counts)
+    device = backend.torch_device()
+    offsets = torch.tensor([0, *torch.tensor(counts).cumsum(0).tolist()], dtype=torch.int32)
+    deltas = torch.rand(samples, generator=generator) * 0.05 + 0.01
+    sigmas = torch.rand(samples, generator=generator) * sigma_scale
+    colors = torch.rand(samples, 3, generator=generator)
+    depths = torch.cat([torch.cumsum(deltas[a:b], 0) + 1.0 for a, b in zip(offsets[:-1], offsets[1:], strict=True)])
+    return tuple(t.to(device) for t in (sigmas, colors, deltas, depths, offsets))
+
+
+def _rays(count: int, seed: int = 0):
+    """Rays from a ring of cameras around the box, aimed near its centre."""
+    generator = torch.Generator().manual_seed(seed)
+    angle = torch.rand(count, generator=generator) * 2 * math.pi
+    height = torch.rand(count, generator=generator) - 0.5
+    origins = torch.stack([3 * torch.cos(angle), 3 * torch.sin(angle), height], -1)
+    target = (torch.rand(count, 3, generator=generator) - 0.5) * 1.5
+    directions = torch.nn.functional.normalize(target - origins, dim=-1)
+    jitter = torch.rand(count, generator=generator)
+    device = backend.torch_device()
+    return origins.to(device), directions.to(device), jitter.to(device)
+
+
+def _grid(resolution: int, fill: float, seed: int = 3) -> torch.Tensor:
+    generator = torch.Generator().manual_seed(seed)
+    return (torch.rand(resolution, resolution, resolution, generator=generator) < fill).to(backend.torch_device())
+
+
+def test_composite_forward_matches_reference_with_empty_rays(device):
+    sigmas, colors, deltas, depths, offsets = _packed([5, 0, 17, 1, 0, 40, 3], sigma_scale=5.0)
+    color, opacity, depth, used, weights = composite_forward(
+        sigmas, colors, deltas, depths, offsets, return_weights=True
+    )
+    expected = composite_torch(sigmas, colors, deltas, depths, offsets)
+    for value, reference in zip((color, opacity, depth, weights), expected, strict=True):
+        torch.testing.assert_close(value, reference, rtol=1e-5, atol=1e-6)
+    assert color[1].abs().sum() == 0 and opacity[4] == 0 and depth[1] == 0, "empty rays composite to nothing"
+    assert used.tolist() == [5, 0, 17, 1, 0, 40, 3], "no ray reached the termination threshold"
+    assert bool((opacity <= 1.0).all() and (opacity >= 0.0).all())
+
+
+def test_early_termination_stops_where_transmittance_drops_below_threshold(device):
+    sigmas, colors, deltas, depths, offsets = _packed([60, 60, 4], sigma_scale=400.0, seed=1)
+    color, opacity, depth, used, weights = composite_forward(
+        sigmas, colors, deltas, depths, offsets, return_weights=True
+    )
+    tau = (sigmas * deltas).double().cpu()
+    for ray in range(2):
+        a = int(offsets[ray])
+        transmittance = torch.exp(-torch.cumsum(torch.cat([tau.new_zeros(1), tau[a : a + 60]]), 0))[:-1]
+        expected_used = int((transmittance >= DEFAULT_TRANSMITTANCE_THRESHOLD).sum())
+        assert int(used[ray]) == expected_used < 60, "dense rays must stop before their last sample"
+        assert bool((weights[a + expected_used : a + 60] == 0).all()), "samples after termination carry no weight"
+        # Compositing only the samples before termination gives the same pixel.
+        head = slice(a, a + expected_used)
+        truncated = composite_forward(
+            sigmas[head], colors[head], deltas[head], depths[head],
+            torch.tensor([0, expected_used], dtype=torch.int32, device=sigmas.device),
+        )
+        torch.testing.assert_close(truncated[0][0], color[ray], rtol=0, atol=0)
+    assert opacity[0] > 1 - DEFAULT_TRANSMITTANCE_THRESHOLD
+    expected = composite_torch(sigmas, colors, deltas, depths, offsets)
+    for value, reference in zip((color, opacity, depth, weights), expected, strict=True):
+        torch.testing.assert_close(value, reference, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("sigma_scale", [5.0, 400.0], ids=["translucent", "terminating"])
+def test_backward_matches_reference_autograd(device, sigma_scale):
+    sigmas, colors, deltas, depths, offsets = _packed([8, 0, 33, 1, 50, 12], sigma_scale=sigma_scale, seed=2)
+    generator = torch.Generator().manual_seed(5)
+    rays = offsets.shape[0] - 1
+    g_color, g_opacity, g_depth = (
+        torch.randn(*shape, generator=generator).to(sigmas.device) for shape in ((rays, 3), (rays,), (rays,))
+    )
+
+    s, c = sigmas.clone().requires_grad_(), colors.clone().requires_grad_()
+    out = composite(s, c, deltas, depths, offsets)
+    loss = (out["color"] * g_color).sum() + (out["opacity"] * g_opacity).sum() + (out["depth"] * g_depth).sum()
+    grad_sigmas, grad_colors = torch.autograd.grad(loss, (s, c))
+
+    s_ref, c_ref = sigmas.double().requires_grad_(), colors.double().requires_grad_()
+    color, opacity, depth, _ = composite_torch(s_ref, c_ref, deltas, depths, offsets)
+    loss_ref = (color * g_color).sum() + (opacity * g_opacity).sum() + (depth * g_depth).sum()
+    grad_sigmas_ref, grad_colors_ref = torch.autograd.grad(loss_ref, (s_ref, c_ref))
+
+    torch.testing.assert_close(grad_sigmas, grad_sigmas_ref.float(), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(grad_colors, grad_colors_ref.float(), rtol=1e-4, atol=1e-6)
+    assert grad_sigmas.abs().sum() > 0
+
+
+def test_backward_is_zero_for_samples_after_termination(device):
+    sigmas, colors, deltas, depths, offsets = _packed([50], sigma_scale=1000.0, seed=4)
+    color, opacity, depth, used, _ = composite_forward(sigmas, colors, deltas, depths, offsets)
+    ones = torch.ones_like(color), torch.ones_like(opacity), torch.ones_like(depth)
+    grad_sigmas, grad_colors = composite_backward(
+        *ones, sigmas, colors, deltas, depths, offsets, color, opacity, depth, used
+    )
+    n = int(used[0])
+    assert n < 50
+    assert bool((grad_sigmas[n:] == 0).all() and (grad_colors[n:] == 0).all())
+    assert bool((grad_colors[:n] > 0).all())
+
+
+def test_all_rays_empty(device):
+    device_ = backend.torch_device()
+    offsets = torch.zeros(4, dtype=torch.int32, device=device_)
+    empty = torch.zeros(0, device=device_)
+    sigmas = empty.clone().requires_grad_()
+    colors = torch.zeros(0, 3, device=device_, requires_grad=True)
+    out = composite(sigmas, colors, empty, empty, offsets, return_weights=True)
+    assert out["color"].shape == (3, 3) and bool((out["color"] == 0).all()) and out["weights"].numel() == 0
+    (out["color"].sum() + out["opacity"].sum()).backward()
+    assert sigmas.grad.shape == (0,) and colors.grad.shape == (0, 3)
+
+
+@pytest.mark.parametrize(
+    ("min_step", "cone_angle", "max_step"), [(0.02, 0.0, None), (0.005, 0.01, 0.04)], ids=["constant", "cone"]
+)
+def test_march_matches_reference(device, min_step, cone_angle, max_step):
+    origins, directions, jitter = _rays(1500)
+    grid = _grid(16, 0.4)
+    kwargs = dict(max_step=max_step, cone_angle=cone_angle, max_samples=48, jitter=jitter)
+    samples = march_rays(origins, directions, 0.5, 6.0, grid, AABB, min_step, **kwargs)
+    positions, depths, deltas, offsets = march_rays_torch(origins, directions, 0.5, 6.0, grid, AABB, min_step, **kwargs)
+    assert torch.equal(samples.ray_offsets, offsets)
+    torch.testing.assert_close(samples.positions, positions, rtol=0, atol=1e-5)
+    torch.testing.assert_close(samples.depths, depths, rtol=0, atol=1e-5)
+    torch.testing.assert_close(samples.deltas, deltas, rtol=0, atol=1e-6)
+    assert int(samples.counts.max()) == 48, "some rays must reach max_samples"
+    assert torch.equal(samples.ray_indices, torch.repeat_interleave(torch.arange(1500), samples.counts.long().cpu()).to(
+        samples.ray_indices.device
+    ))
+    # Every emitted sample lies in an occupied cell.
+    cells = ((samples.positions - AABB[0].to(positions)) / (2.0 / 16)).floor().long().clamp(0, 15)
+    assert bool(grid[cells[:, 0], cells[:, 1], cells[:, 2]].all())
+
+
+def test_march_through_full_grid_covers_the_box(device):
+    origins, directions, _ = _rays(300, seed=7)
+    step = 0.01
+    samples = march_rays(origins, directions, 0.0, 100.0, _grid(8, 1.1), AABB, step, max_samples=4096)
+    d = torch.where(directions.abs() < 1e-12, 1e-12, directions)
+    t0, t1 = (AABB[0].to(d) - origins) / d, (AABB[1].to(d) - origins) / d
+    enter, leave = torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
+    hits = enter < leave
+    assert bool((samples.counts[~hits] == 0).all()), "rays missing the box get no samples"
+    for ray in torch.nonzero(hits).flatten().tolist()[:50]:
+        a, b = int(samples.ray_offsets[ray]), int(samples.ray_offsets[ray + 1])
+        t = samples.depths[a:b]
+        assert abs(float(t[0] - enter[ray])) < 1e-5, "the first sample sits on the box entry"
+        assert float(t[-1]) < float(leave[ray]) <= float(t[-1]) + step + 1e-5, "the last step reaches the exit"
+        torch.testing.assert_close(t.diff(), torch.full_like(t[1:], step), rtol=0, atol=2e-5)
+
+
+def test_march_skips_empty_space(device):
+    origins, directions, jitter = _rays(500, seed=8)
+    empty = march_rays(origins, directions, 0.0, 10.0, _grid(16, -1.0), AABB, 0.01, jitter=jitter)
+    assert empty.positions.shape == (0, 3) and empty.ray_offsets.shape == (501,)
+    # One occupied cell in the middle: samples only there, on the same lattice as with a full grid.
+    centre = torch.zeros(4, 4, 4, dtype=torch.bool, device=backend.torch_device())
+    centre[1:3, 1:3, 1:3] = True
+    sparse = march_rays(origins, directions, 0.0, 10.0, centre, AABB, 0.01, jitter=jitter)
+    full = march_rays(origins, directions, 0.0, 10.0, _grid(4, 1.1), AABB, 0.01, jitter=jitter)
+    assert 0 < sparse.positions.shape[0] < full.positions.shape[0]
+    assert bool((sparse.positions.abs() <= 0.5 + 1e-5).all())
+    inside = (full.positions.abs() < 0.5).all(-1)
+    torch.testing.assert_close(sparse.depths, full.depths[inside], rtol=0, atol=1e-5)
+
+
+def test_bad_inputs_raise_clear_errors(device):
+    sigmas, colors, deltas, depths, offsets = _packed([3, 2])
+    with pytest.raises(TypeError, match="float32"):
+        composite_forward(sigmas.double(), colors, deltas, depths, offsets)
+    with pytest.raises(ValueError, match=r"colors must be \[5, 3\]"):
+        composite_forward(sigmas, colors[:4], deltas, depths, offsets)
+    with pytest.raises(TypeError, match="int32"):
+        composite_forward(sigmas, colors, deltas, depths, offsets.long())
+    if offsets.device.type == "cpu":
+        with pytest.raises(ValueError, match="rise from 0 to S"):
+            composite_forward(sigmas, colors, deltas, depths, offsets.flip(0).contiguous())
+    origins, directions, _ = _rays(4)
+    grid = _grid(4, 0.5)
+    with pytest.raises(ValueError, match="aabb"):
+        march_rays(origins, directions, 0.0, 1.0, grid, AABB.flip(0), 0.1)
+    with pytest.raises(ValueError, match="occupancy"):
+        march_rays(origins, directions, 0.0, 1.0, grid.float(), AABB, 0.1)
+    with pytest.raises(ValueError, match="min_step"):
+        march_rays(origins, directions, 0.0, 1.0, grid, AABB, 0.0)
+    with pytest.raises(ValueError, match="near"):
+        march_rays(origins, directions, torch.zeros(3), 1.0, grid, AABB, 0.1)
