@@ -88,9 +88,16 @@ class IPIntegrator:
         self.shape_grad = (shape_grad * valid[:, None, :, None]).to(torch.float64).contiguous()
         self.weight = weight.to(torch.float64)
         self.set_material(mu, lam)
-        # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]; padded entries
-        # carry zero derivatives, so their contributions to block (0, 0) vanish.
-        self.block_index = (self.index[:, :, None] * shape_count + self.index[:, None, :]).reshape(-1)
+        # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]. Assembly is a
+        # segmented sum: the contributions of real (unpadded) pairs are gathered in order of their
+        # global block, summed per block and written once. Atomic scatter-adds of doubles
+        # (index_add_) took 10 ms of a 30 ms step on an H100 at 78 kernels.
+        block_index = (self.index[:, :, None] * shape_count + self.index[:, None, :]).reshape(-1)
+        pair_valid = (valid[:, :, None] & valid[:, None, :]).reshape(-1)
+        contribution = torch.nonzero(pair_valid).squeeze(1)
+        order = torch.argsort(block_index[contribution], stable=True)
+        self._gather = contribution[order]
+        self._block, self._block_lengths = torch.unique_consecutive(block_index[self._gather], return_counts=True)
         self.eye = torch.eye(3, dtype=torch.float64, device=shape_grad.device)
 
     def set_material(self, mu: torch.Tensor | float, lam: torch.Tensor | float) -> None:
@@ -133,7 +140,11 @@ class IPIntegrator:
             blocks = torch.bmm(
                 self.shape_grad.permute(0, 2, 1, 3).reshape(K, S, G * 3), C.reshape(K, G * 3, S * 9)
             )
-            result.hessian = self.assemble_blocks(blocks.reshape(-1, 9), self.block_index)
+            summed = torch.segment_reduce(blocks.reshape(-1, 9)[self._gather], "sum", lengths=self._block_lengths)
+            n = self.shape_count
+            dense = torch.zeros(n * n, 9, dtype=torch.float64, device=q.device)
+            dense[self._block] = summed
+            result.hessian = dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
         return result
 
     def assemble_blocks(self, blocks: torch.Tensor, block_index: torch.Tensor) -> torch.Tensor:

@@ -63,6 +63,12 @@ class IntegratorPoints:
         frame: ``[K, 3, 3]`` cuboid axes ``c_1, c_2, c_3`` as orthonormal, right-handed columns.
         extent: ``[K, 3]`` cuboid edge lengths ``h_1 ≥ h_2 ≥ h_3`` (length), ``h_1 h_2 h_3 = V_k`` (Eq. 13).
         is_kernel_ip: ``[K]`` bool, true for the IPs at kernel centres (the first ``n``).
+        centre: ``[K, 3]`` cuboid centres (length): the volume centroid of the particles the cuboid was
+            fitted to. An IP sits on a particle, which on a plate two particles thick is on one face,
+            not the mid-plane; a cuboid centred there would integrate bending about the wrong axis
+            (1.75x too stiff for that plate), so the cuboid is centred on the centroid instead and the
+            quadrature points are offsets from the IP to it (the Taylor expansion of Eq. 14 stays
+            about the IP). ``None`` means the IP positions.
     """
 
     position: torch.Tensor
@@ -70,6 +76,7 @@ class IntegratorPoints:
     frame: torch.Tensor
     extent: torch.Tensor
     is_kernel_ip: torch.Tensor
+    centre: torch.Tensor | None = None
 
     @property
     def count(self) -> int:
@@ -203,6 +210,7 @@ def place_integrator_points(
     count: int,
     lloyd_iterations: int = 5,
     neighbours: int = 16,
+    cuboid_from: str = "cell",
 ) -> IntegratorPoints:
     """Integrator points with their volumes and cuboids (§4.3–4.4).
 
@@ -212,14 +220,23 @@ def place_integrator_points(
     volume of its Voronoi cell, so the volumes sum to the particles' total (the paper's ``Σ_j V_j``
     over each IP's ``K`` nearest particles would count shared neighbours several times).
 
-    Cuboid (§4.4): over the ``K = neighbours`` particles nearest to the IP, the volume-weighted
-    covariance about their weighted mean, ``C = Σ_j V_j [(x_j − x̄)(x_j − x̄)ᵀ + (s_j²/12) I] / Σ_j V_j``
-    with ``s_j = V_j^{1/3}``. Its eigenvectors are the cuboid axes and ``h_1 : h_2 : h_3 =
-    √λ_1 : √λ_2 : √λ_3``, scaled so that ``h_1 h_2 h_3 = V_k``. The ``s_j²/12`` term is the second
-    moment of a cube of the particle's own volume: it floors the eigenvalues so that a layer one
-    particle thick (a thin plate, where the paper's covariance is singular) still gets a cuboid about
-    one particle thick instead of a zero edge, which the volume constraint could not satisfy. In
-    thick regions it is negligible next to the spread of the neighbours.
+    Cuboid (§4.4): over a set of particles around the IP — its own Voronoi cell
+    (``cuboid_from="cell"``, the default) or, as the paper words it, the ``K = neighbours`` particles
+    nearest to it (``cuboid_from="neighbours"``) — the volume-weighted covariance about their mean,
+    ``C = Σ_j V_j [(x_j − x̄)(x_j − x̄)ᵀ + (s_j²/12) I] / Σ_j V_j`` with ``s_j = V_j^{1/3}``. Its
+    eigenvectors are the cuboid axes and ``h_i ∝ √(12 λ_i)`` (the edges of a uniform box with that
+    covariance), scaled so that ``h_1 h_2 h_3 = V_k``. The ``s_j²/12`` term is the second moment of a
+    cube of the particle's own volume: it floors the eigenvalues so that a layer one particle thick
+    (a thin plate, where the paper's covariance is singular) gets a cuboid one particle thick
+    instead of a zero edge, which the volume constraint could not satisfy. In thick regions it is
+    negligible next to the spread of the particles.
+
+    Why the cell by default: the cuboid must have the IP's volume. Fitting the K-neighbour ratios to
+    that volume scales all three edges alike, so wherever the cell is smaller than the neighbourhood
+    a thin plate's cuboid comes out thinner or thicker than the plate (1.2x thicker was measured on a
+    two-particle-thick plate, which stiffens bending by about its square). The cell's own covariance
+    has extents √(12 λ_i) whose product already approximates the cell volume, so the volume fit
+    barely rescales them and a layer keeps its true thickness.
 
     Args:
         position: ``[P, 3]`` particle rest positions (length).
@@ -227,7 +244,8 @@ def place_integrator_points(
         kernel_centres: ``[n, 3]`` kernel centres (length).
         count: total number of IPs ``K`` ≥ ``n``, kernel IPs included.
         lloyd_iterations: Lloyd steps for the added IPs.
-        neighbours: particles per covariance (clamped to ``P``).
+        neighbours: particles per covariance for ``cuboid_from="neighbours"`` (clamped to ``P``).
+        cuboid_from: ``"cell"`` or ``"neighbours"`` (above).
 
     Returns:
         :class:`IntegratorPoints` with the kernel IPs first.
@@ -243,14 +261,21 @@ def place_integrator_points(
         )
     if neighbours < 1:
         raise ValueError(f"neighbours must be >= 1, got {neighbours}")
+    if cuboid_from not in ("cell", "neighbours"):
+        raise ValueError(f"cuboid_from must be 'cell' or 'neighbours', got {cuboid_from!r}")
     _check_count(count - n, position.shape[0], "place_integrator_points", "particles")
     added = _farthest_from(position, count - n, kernel_centres if n else None)
     ips = torch.cat([kernel_centres, position[added]])
     is_kernel_ip = torch.arange(count, device=position.device) < n
     ips, cell = lloyd_relaxation(position, volume, ips, lloyd_iterations, fixed_mask=is_kernel_ip)
     ip_volume = torch.zeros(count, dtype=torch.float64, device=position.device).index_add_(0, cell, volume)
-    frame, extent = _cuboids(position, volume, ips, ip_volume, min(neighbours, position.shape[0]))
-    return IntegratorPoints(position=ips, volume=ip_volume, frame=frame, extent=extent, is_kernel_ip=is_kernel_ip)
+    if cuboid_from == "cell":
+        centre, frame, extent = _cell_cuboids(position, volume, cell, ip_volume)
+    else:
+        centre, frame, extent = _cuboids(position, volume, ips, ip_volume, min(neighbours, position.shape[0]))
+    return IntegratorPoints(
+        position=ips, volume=ip_volume, frame=frame, extent=extent, is_kernel_ip=is_kernel_ip, centre=centre
+    )
 
 
 def cuboid_quadrature(ips: IntegratorPoints, points_per_axis: int = 3) -> tuple[torch.Tensor, torch.Tensor]:
@@ -267,8 +292,9 @@ def cuboid_quadrature(ips: IntegratorPoints, points_per_axis: int = 3) -> tuple[
         points_per_axis: ``g`` ≥ 1.
 
     Returns:
-        ``(offset [K, g³, 3], weight [K, g³])``: world-frame offsets ``h`` from each IP centre (length)
-        and quadrature weights (length³) that sum to each IP's volume.
+        ``(offset [K, g³, 3], weight [K, g³])``: world-frame offsets ``h`` of the quadrature points from
+        each IP (length; the cuboid is centred on ``ips.centre``) and quadrature weights (length³) that
+        sum to each IP's volume.
     """
     if isinstance(points_per_axis, bool) or not isinstance(points_per_axis, int) or points_per_axis < 1:
         raise ValueError(f"points_per_axis must be an int >= 1 (2 or 3 are typical), got {points_per_axis!r}")
@@ -280,6 +306,8 @@ def cuboid_quadrature(ips: IntegratorPoints, points_per_axis: int = 3) -> tuple[
     grid_weight = torch.cartesian_prod(weights, weights, weights).reshape(-1, 3).prod(-1)  # sums to 1
     local = 0.5 * grid.unsqueeze(0) * ips.extent.unsqueeze(1)  # [K, g³, 3] in the cuboid frame
     offset = torch.einsum("kab,kgb->kga", ips.frame, local)
+    if ips.centre is not None:
+        offset = offset + (ips.centre - ips.position).unsqueeze(1)
     return offset, ips.volume.unsqueeze(-1) * grid_weight
 
 
@@ -365,8 +393,8 @@ def _snap_to_cell(
 def _cuboids(
     position: torch.Tensor, volume: torch.Tensor, centres: torch.Tensor, target_volume: torch.Tensor, neighbours: int
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Cuboid frames ``[K, 3, 3]`` and edge lengths ``[K, 3]`` from neighbour covariances (§4.4)."""
-    frames, extents = [], []
+    """Cuboid centres ``[K, 3]``, frames ``[K, 3, 3]`` and edges ``[K, 3]`` from neighbour covariances (§4.4)."""
+    centres_out, frames, extents = [], [], []
     eye = torch.eye(3, dtype=torch.float64, device=position.device)
     for rows in torch.arange(centres.shape[0], device=position.device).split(_CHUNK):
         nearest = (
@@ -386,9 +414,39 @@ def _cuboids(
         eigenvectors = torch.cat([eigenvectors[..., :2], eigenvectors[..., 2:] * handed[:, None, None]], -1)
         ratio = eigenvalues.sqrt()
         scale = (target_volume[rows] / ratio.prod(-1)) ** (1.0 / 3.0)
+        centres_out.append(mean.squeeze(1))
         frames.append(eigenvectors)
         extents.append(ratio * scale.unsqueeze(-1))
-    return torch.cat(frames), torch.cat(extents)
+    return torch.cat(centres_out), torch.cat(frames), torch.cat(extents)
+
+
+def _cell_cuboids(
+    position: torch.Tensor, volume: torch.Tensor, cell: torch.Tensor, target_volume: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Cuboid centres ``[K, 3]``, frames ``[K, 3, 3]`` and edges ``[K, 3]`` from each IP's Voronoi cell."""
+    count = target_volume.shape[0]
+    eye = torch.eye(3, dtype=torch.float64, device=position.device)
+    mass = torch.zeros(count, dtype=torch.float64, device=position.device).index_add_(0, cell, volume)
+    first = torch.zeros(count, 3, dtype=torch.float64, device=position.device)
+    first.index_add_(0, cell, volume[:, None] * position)
+    second = torch.zeros(count, 3, 3, dtype=torch.float64, device=position.device)
+    own = position[:, :, None] * position[:, None, :] + (volume ** (2.0 / 3.0) / 12.0)[:, None, None] * eye
+    second.index_add_(0, cell, volume[:, None, None] * own)
+    mean = first / mass.clamp_min(1e-300)[:, None]
+    covariance = second / mass.clamp_min(1e-300)[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    return (mean, *_frame_and_extent(covariance, target_volume))
+
+
+def _frame_and_extent(covariance: torch.Tensor, target_volume: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Principal axes (right-handed, longest first) and edges √(12 λ_i) scaled to ``target_volume``."""
+    eigenvalues, eigenvectors = torch.linalg.eigh(0.5 * (covariance + covariance.mT))  # ascending
+    eigenvalues, eigenvectors = eigenvalues.flip(-1), eigenvectors.flip(-1)
+    eigenvalues = eigenvalues.clamp_min(1e-12 * eigenvalues[:, :1].clamp_min(1e-300))
+    handed = torch.linalg.det(eigenvectors).sign()
+    eigenvectors = torch.cat([eigenvectors[..., :2], eigenvectors[..., 2:] * handed[:, None, None]], -1)
+    natural = (12.0 * eigenvalues).sqrt()
+    scale = (target_volume / natural.prod(-1)) ** (1.0 / 3.0)
+    return eigenvectors, natural * scale.unsqueeze(-1)
 
 
 def _check_count(count: int, available: int, what: str, noun: str) -> None:

@@ -50,7 +50,8 @@ class SolverConfig:
         rayleigh_alpha: mass-proportional damping α (1/s).
         rayleigh_beta: stiffness-proportional damping β (s).
         newton_iterations: most Newton iterations per step.
-        newton_tolerance: stop when the largest DOF update is below this (m for value DOFs).
+        newton_tolerance: stop when the largest displacement update at the integrator points
+            (|J Δq|, m) is below this.
         line_search_steps: most halvings of a Newton step.
         contact_stiffness: penalty modulus of colliders (Pa); a particle of volume V gets a spring of
             stiffness contact_stiffness · V^(1/3) (N/m). ``None`` → 100 × Young's modulus.
@@ -61,7 +62,7 @@ class SolverConfig:
     rayleigh_alpha: float = 0.0
     rayleigh_beta: float = 0.0
     newton_iterations: int = 3
-    newton_tolerance: float = 1e-9
+    newton_tolerance: float = 1e-8
     line_search_steps: int = 20
     contact_stiffness: float | None = None
     project_hessian: bool = True
@@ -147,7 +148,7 @@ class StepReport:
 
     iterations: int = 0
     energy: float = 0.0
-    last_update: float = 0.0
+    last_update: float = 0.0  # largest |J Δq| at the integrator points (m)
     min_det: float = 1.0
     line_search_halvings: int = 0
     time_assembly: float = 0.0
@@ -195,6 +196,12 @@ class SolverQGMLS:
         """The undeformed body at rest."""
         zeros = torch.zeros(self._n, 3, dtype=torch.float64, device=self.model.device)
         return StateQGMLS(zeros.clone(), zeros.clone())
+
+    def _displacement_norm(self, dq: torch.Tensor) -> float:
+        """Largest displacement |J(x_k) dq| over the integrator points (m): the Newton stopping measure,
+        in metres whatever the DOF (values, gradients and second derivatives have different units)."""
+        shape = self.model.ip_shape
+        return float(torch.einsum("ks,ksa->ka", shape.value, dq[shape.index.clamp_min(0)]).abs().max())
 
     # -- energies of the step ----------------------------------------------------------------
 
@@ -320,11 +327,7 @@ class SolverQGMLS:
             report.time_assembly += time.perf_counter() - clock
 
             clock = time.perf_counter()
-            L, info = torch.linalg.cholesky_ex(H)
-            if int(info) != 0:  # only from round-off: every term is PSD and M/h² is PD
-                H.diagonal().add_(1e-9 * H.diagonal().abs().max())
-                L = torch.linalg.cholesky(H)
-            step = torch.cholesky_solve(-grad.reshape(-1, 1), L).view_as(q)
+            step = _spd_solve(H, grad)
             backend.synchronize()
             report.time_solve += time.perf_counter() - clock
 
@@ -347,7 +350,7 @@ class SolverQGMLS:
             report.iterations += 1
             report.energy = float(trial_energy)
             report.min_det = float(trial_elastic.min_det)
-            report.last_update = float((t * step).abs().max())
+            report.last_update = self._displacement_norm(t * step)
             report.time_other += time.perf_counter() - clock
             if report.last_update < config.newton_tolerance:
                 break
@@ -384,8 +387,7 @@ class SolverQGMLS:
             for part in (spring_H, contact_H):
                 if part is not None:
                     H += part
-            H.diagonal().add_(1e-12 * H.diagonal().abs().max())
-            step = torch.linalg.solve(H, -grad.reshape(-1)).view_as(q)
+            step = _spd_solve(H, grad)
             energy, slope, t = energy_at(q), (grad * step).sum(), 1.0
             for _ in range(self.config.line_search_steps):
                 trial_energy = energy_at(q + t * step)
@@ -393,7 +395,18 @@ class SolverQGMLS:
                     break
                 t *= 0.5
             q = q + t * step
-            update = float((t * step).abs().max())
+            update = self._displacement_norm(t * step)
             if update < self.config.newton_tolerance:
                 break
         return q, update
+
+
+def _spd_solve(H: torch.Tensor, grad: torch.Tensor) -> torch.Tensor:
+    """Newton direction −H⁻¹ g by Cholesky. Every term of H is PSD; should round-off (or an
+    unconstrained rigid motion in a static solve) make it singular, a shift of 1e-10 times the
+    mean diagonal is added, small next to the physical stiffnesses."""
+    L, info = torch.linalg.cholesky_ex(H)
+    if int(info) != 0:
+        shifted = H + 1e-10 * H.diagonal().mean() * torch.eye(H.shape[0], dtype=H.dtype, device=H.device)
+        L = torch.linalg.cholesky(shifted)
+    return torch.cholesky_solve(-grad.reshape(-1, 1), L).view_as(grad)

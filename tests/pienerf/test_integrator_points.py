@@ -116,9 +116,10 @@ def test_place_integrator_points(device, shape):
     assert torch.allclose(ips.frame.mT @ ips.frame, eye, atol=1e-12)
     assert torch.allclose(torch.linalg.det(ips.frame), torch.ones(20, dtype=F64, device=position.device))
     if shape == "plate":
-        # Thin plate: the shortest cuboid axis is the plate normal, and the cuboid stays finite.
+        # Thin plate: the shortest cuboid axis is the plate normal and the cuboid is as thick as the
+        # layer (one particle of edge h = 0.1), not thicker or thinner.
         assert torch.allclose(ips.frame[:, 2, 2].abs(), torch.ones(20, dtype=F64, device=position.device))
-        assert bool((ips.extent[:, 2] < 0.5 * ips.extent[:, 1]).all())
+        assert torch.allclose(ips.extent[:, 2], torch.full_like(ips.extent[:, 2], 0.1), rtol=0.05)
         assert bool(torch.isfinite(ips.extent).all())
 
 
@@ -139,7 +140,8 @@ def test_cuboid_quadrature_weights_and_exactness(device):
         offset, weight = cuboid_quadrature(ips, points_per_axis=g)
         assert offset.shape == (10, g**3, 3) and weight.shape == (10, g**3)
         assert torch.allclose(weight.sum(1), ips.volume, rtol=1e-12)
-        local = torch.einsum("kba,kgb->kga", ips.frame, offset)  # back to cuboid coordinates
+        # back to cuboid coordinates about the cuboid centre (the cell centroid, not the IP itself)
+        local = torch.einsum("kba,kgb->kga", ips.frame, offset - (ips.centre - ips.position).unsqueeze(1))
         assert bool((local.abs() <= 0.5 * ips.extent.unsqueeze(1) + 1e-12).all())
         # ∫ h_1⁴ over the cuboid = V h_1⁴ / 80: degree 4 per axis, exact from g = 3 (2g − 1 ≥ 4).
         exact = ips.volume * ips.extent[:, 0] ** 4 / 80.0
