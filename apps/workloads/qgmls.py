@@ -57,10 +57,8 @@ def bench_qgmls_assemble(device: str, size: str) -> Case:
     )
 
 
-@workload("qgmls_step", "Q-GMLS implicit Euler step, 3 Newton iterations, a drag and a pin (n = 16 / 78 / 200)")
-def bench_qgmls_step(device: str, size: str) -> Case:
+def _step_case(size: str, config: SolverConfig, name: str) -> Case:
     model = _box_model(size)
-    config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0)
     solver = SolverQGMLS(model, Material(), config)
     reference = SolverQGMLS(model, Material(), config)
     reference.integrator.response = material_response_batched
@@ -79,14 +77,28 @@ def bench_qgmls_step(device: str, size: str) -> Case:
     case = Case(
         run=lambda: step(solver),
         reference=lambda: step(reference),
-        params={**_params(model), "newton_iterations": 3, "dt_s": 1.0 / 60.0},
+        params={**_params(model), "newton_iterations": config.newton_iterations,
+                "hessian_updates": config.hessian_updates, "dt_s": 1.0 / 60.0},
         work=1.0,
         unit="steps/s",
-        reference_name="same step, torch material response",
+        reference_name=name,
     )
-    step(solver)
+    for _ in range(2):
+        step(solver)
     last = reports[-1]
     case.extra.update({
         "time_assembly_s": last.time_assembly, "time_solve_s": last.time_solve, "time_other_s": last.time_other,
     })
     return case
+
+
+@workload("qgmls_step", "Q-GMLS implicit Euler step, 3 Newton iterations, a drag and a pin (n = 16 / 78 / 200)")
+def bench_qgmls_step(device: str, size: str) -> Case:
+    config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0)
+    return _step_case(size, config, "same step, torch material response")
+
+
+@workload("qgmls_step_modified", "as qgmls_step, one Hessian factorisation reused by all 3 Newton iterations")
+def bench_qgmls_step_modified(device: str, size: str) -> Case:
+    config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0, hessian_updates=1)
+    return _step_case(size, config, "same step, torch material response")

@@ -154,3 +154,20 @@ def test_bad_solver_config_and_model_inputs(device):
     state = solver.rest_state()
     with pytest.raises(ValueError, match="dt must be"):
         solver.step(state, state, ControlQGMLS(), 0.0)
+
+
+def test_modified_newton_reaches_the_same_step(device):
+    """Reusing the first Cholesky factor (hessian_updates=1) converges to Newton's solution."""
+    model = box_model(backend.torch_device())
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    control = ControlQGMLS(springs=[PointTargets(pin, pin.rest.clone(), 1e5)])
+    results = []
+    for config in (SolverConfig(newton_iterations=12, newton_tolerance=1e-12),
+                   SolverConfig(newton_iterations=60, newton_tolerance=1e-12, hessian_updates=1)):
+        solver = SolverQGMLS(model, Material(young_modulus=5e4), config)
+        state = solver.rest_state()
+        for _ in range(3):
+            report = solver.step(state, state, control, 1e-2)
+        assert report.last_update < 1e-10
+        results.append(model.particles.positions(state.q))
+    torch.testing.assert_close(results[1], results[0], rtol=0, atol=1e-8)
