@@ -277,6 +277,16 @@ class SolverQGMLS:
             self._point_gradient(f, forces.handle.index, forces.handle.value, forces.force)
         return f
 
+    def _incremental_energy(self, x, q_hat, q_n, inv_h, f_ext, damping_K, elastic) -> torch.Tensor:
+        """Inertia, elastic, external-force and damping terms of the incremental potential at x."""
+        dx_hat, dx = x - q_hat, x - q_n
+        energy = 0.5 * inv_h**2 * (dx_hat * (self.mass @ dx_hat)).sum() + elastic - (f_ext * x).sum()
+        if self.config.rayleigh_alpha:
+            energy = energy + 0.5 * inv_h * self.config.rayleigh_alpha * (dx * (self.mass @ dx)).sum()
+        if damping_K is not None:
+            energy = energy + 0.5 * inv_h * self.config.rayleigh_beta * (dx.reshape(-1) @ (damping_K @ dx.reshape(-1)))
+        return energy
+
     # -- the step --------------------------------------------------------------------------
 
     def step(self, state_in: StateQGMLS, state_out: StateQGMLS, control: ControlQGMLS, dt: float) -> StepReport:
@@ -296,15 +306,10 @@ class SolverQGMLS:
         q = q_n.clone()
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
         alpha, beta = config.rayleigh_alpha, config.rayleigh_beta
-        spring_E, spring_g, spring_H = self._spring_terms(control.springs, q, hessian=True)
+        spring_H = self._spring_terms(control.springs, q, hessian=True)[2]  # constant: springs are quadratic
 
         def total_energy(x: torch.Tensor, elastic: torch.Tensor) -> torch.Tensor:
-            dx_hat, dx = x - q_hat, x - q_n
-            energy = 0.5 * inv_h2 * (dx_hat * (self.mass @ dx_hat)).sum() + elastic - (f_ext * x).sum()
-            if alpha:
-                energy = energy + 0.5 * inv_h * alpha * (dx * (self.mass @ dx)).sum()
-            if damping_K is not None:
-                energy = energy + 0.5 * inv_h * beta * (dx.reshape(-1) @ (damping_K @ dx.reshape(-1)))
+            energy = self._incremental_energy(x, q_hat, q_n, inv_h, f_ext, damping_K, elastic)
             energy = energy + self._spring_terms(control.springs, x, hessian=False)[0]
             return energy + self._contact_terms(control.colliders, x, hessian=False)[0]
 
@@ -317,9 +322,9 @@ class SolverQGMLS:
             if beta and damping_K is None:
                 damping_K = elastic.hessian.clone()  # K(q_n): Newton starts at q_n
             contact_E, contact_g, contact_H = self._contact_terms(control.colliders, q, hessian=fresh)
+            spring_E, spring_g, _ = self._spring_terms(control.springs, q, hessian=False)
             dx_hat, dx = q - q_hat, q - q_n
-            grad = inv_h2 * (self.mass @ dx_hat) + elastic.gradient - f_ext + contact_g
-            grad = grad + self._spring_terms(control.springs, q, hessian=False)[1]
+            grad = inv_h2 * (self.mass @ dx_hat) + elastic.gradient - f_ext + contact_g + spring_g
             if alpha:
                 grad = grad + alpha * inv_h * (self.mass @ dx)
             if damping_K is not None:
@@ -344,7 +349,8 @@ class SolverQGMLS:
             report.time_solve += time.perf_counter() - clock
 
             clock = time.perf_counter()
-            energy = total_energy(q, elastic.energy)
+            energy = self._incremental_energy(q, q_hat, q_n, inv_h, f_ext, damping_K, elastic.energy)
+            energy = energy + spring_E + contact_E
             slope = (grad * step).sum()
             t = 1.0
             for _ in range(config.line_search_steps):
@@ -371,7 +377,6 @@ class SolverQGMLS:
         state_out.qd.copy_((q - q_n) * inv_h)
         state_out.q.copy_(q)
         state_out.time = state_in.time + dt
-        del spring_E, spring_g
         report.time_other += time.perf_counter() - clock
         return report
 
