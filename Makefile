@@ -1,4 +1,5 @@
-# Two entry points: `make demo` runs the main job, `make test` runs lint and the test suite.
+# Two entry points: `make demo` opens the interactive viewer (http://127.0.0.1:8080), `make test` runs
+# lint and the test suite.
 # Both create .venv when it is missing. PYTHON picks the interpreter the venv is made from.
 PYTHON ?= python3
 VENV := .venv
@@ -18,7 +19,7 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m apps.bench --size smoke
+	$(PY) -m apps.demo
 
 lint: $(STAMP)
 	$(PY) -m ruff check .
