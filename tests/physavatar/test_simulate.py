@@ -1,0 +1,106 @@
+"""A skirt on the walking mannequin (PhysAvatar §3.2, Eq. 5) and the `apps.avatar simulate` command."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+
+from physavatar.body import Body
+from physavatar.garment import load_garment, place_on_body, select_boundary
+from physavatar.motion import walk
+from physavatar.simulate import simulate, write_meshes, write_npz, write_stats_json
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+@pytest.fixture(scope="module")
+def body() -> Body:
+    return Body.mannequin(spacing=0.03)
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "apps.avatar", *args], cwd=ROOT, capture_output=True, text=True, check=False
+    )
+
+
+def test_skirt_on_walking_mannequin_stays_outside_and_follows(device, shared_data, body, tmp_path):
+    skirt = place_on_body(load_garment(shared_data / "garments" / "skirt1252.obj"), body)
+    boundary = select_boundary(skirt, body, mode="waist")
+    motion = walk(body.skeleton)
+    frames = 4
+    seen = []
+    result = simulate(skirt, body, motion, frames=frames, device=device, progress=lambda t, s: seen.append(t))
+    assert seen == list(range(1, frames + 1))
+    assert result.garment_frames.shape == (frames + 1, skirt.vertices.shape[0], 3)
+    assert result.body_frames.shape == (frames + 1, body.vertices.shape[0], 3)
+    assert bool(torch.isfinite(result.garment_frames).all())
+    for stats in result.stats:
+        assert 0.0 < stats.min_distance_body and stats.min_distance_self > 0.0
+    # no vertex ends inside the body
+    assert float(body.signed_distance(result.garment_frames[-1], result.body_frames[-1]).min()) > 0.0
+    # the waistband rides with the body's skinning: exactly on its targets at every frame
+    expected = body.skin(motion.rotations[: frames + 1], motion.root_translation[: frames + 1])
+    assert torch.equal(result.body_frames, expected)
+    torch.testing.assert_close(result.garment_frames[0], skirt.vertices)
+    moved = (result.garment_frames[-1] - result.garment_frames[0])[boundary]
+    assert float(moved[:, 2].mean()) > 0.0  # walking toward +z drags the waist forward
+    # and the free hem falls a little under gravity from its rest shape
+    assert float(result.garment_frames[-1][:, 1].min()) < float(skirt.vertices[:, 1].min())
+
+    npz = np.load(write_npz(result, tmp_path / "seq.npz"))
+    assert npz["garment_frames"].shape == tuple(result.garment_frames.shape)
+    np.testing.assert_array_equal(npz["garment_faces"], skirt.faces.numpy())
+    paths = write_meshes(result, tmp_path / "meshes", "ply")
+    assert len(paths) == frames + 1 and all(p.stat().st_size > 0 for p in paths)
+    record = json.loads(write_stats_json(result, tmp_path / "stats.json").read_text())
+    assert [s["step"] for s in record["steps"]] == list(range(1, frames + 1))
+    assert record["summary"]["min_distance_body_m"] > 0.0
+
+
+def test_simulate_refuses_more_frames_than_the_motion(device, shared_data, body):
+    skirt = load_garment(shared_data / "garments" / "skirt1252.obj")
+    with pytest.raises(ValueError, match=r"frames \(200\) must lie in 1\.\.100"):
+        simulate(skirt, body, walk(body.skeleton), frames=200, device=device, progress=False)
+
+
+def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, shared_data, tmp_path):
+    out = tmp_path / "smoke"
+    result = _run("simulate", "--smoke", "--out", str(out), "--device", device)
+    assert result.returncode == 0, result.stderr
+    sequence = np.load(out / "sequence.npz")
+    frames = sequence["garment_frames"].shape[0]
+    assert frames >= 3 and sequence["body_frames"].shape[0] == frames
+    assert sequence["garment_faces"].shape[1] == 3 and float(sequence["fps"]) == 25.0
+    stats = json.loads((out / "stats.json").read_text())
+    assert len(stats["steps"]) == frames - 1
+    assert all(s["min_distance_body"] is not None and s["min_distance_body"] > 0.0 for s in stats["steps"])
+    reader = imageio.get_reader(out / "video.mp4")
+    video_frames = [image for image in reader]
+    assert len(video_frames) == frames
+    assert reader.get_meta_data()["fps"] == 25.0
+    assert reader.get_meta_data()["duration"] == pytest.approx(frames / 25.0, abs=0.02)
+    image = video_frames[0].astype(float)
+    red = (image[..., 0] > image[..., 1] + 60) & (image[..., 0] > image[..., 2] + 60)
+    assert red.sum() > 20  # the garment is on screen in its own colour
+    assert image.std() > 20  # body, ground, shadow and sky differ
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--motion", "dance.txt"], "--motion must be one of walk, turn, raise, jump or a .bvh file"),
+        (["--garment", "missing.obj"], "garment file missing.obj does not exist"),
+        (["--frames", "0"], "--frames must be at least 1"),
+    ],
+)
+def test_bad_input_is_one_clear_line(args, message, tmp_path):
+    result = _run("simulate", "--out", str(tmp_path), *args)
+    assert result.returncode == 2
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and message in lines[0], result.stderr
