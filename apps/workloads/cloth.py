@@ -13,7 +13,6 @@ per-pair NumPy root finder, far too slow for a step).
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import torch
@@ -22,6 +21,7 @@ from apps.workloads import Case, workload
 from kernels import backend, cloth
 from kernels.reference import cloth as ref
 from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth
+from physavatar.shapes import grid_sheet, icosphere
 
 _GARMENTS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "garments"
 _SKIRT = {"smoke": "skirt1252.obj", "paper": "skirt7271.obj", "large": "skirt7271.obj"}
@@ -32,43 +32,9 @@ _DT = 0.04
 
 
 def _sheet(n: int, width: float, height: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """``n × n`` vertices spanning ``width`` in x and z at ``height``, square cells split by a diagonal."""
-    i, j = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
-    s = width / (n - 1)
-    x = torch.stack([s * i.reshape(-1) - 0.5 * width, torch.full((n * n,), height), s * j.reshape(-1) - 0.5 * width], 1)
-    v = (i * n + j)[:-1, :-1].reshape(-1)
-    faces = torch.cat([torch.stack([v, v + n, v + 1], 1), torch.stack([v + 1, v + n, v + n + 1], 1)])
-    return x.to(torch.float64), faces.to(torch.int32)
-
-
-def _icosphere(level: int, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Outward-oriented icosphere of ``radius`` about the origin, subdivided ``level`` times."""
-    t = (1.0 + 5.0**0.5) / 2.0
-    corners = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
-    corners += [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    faces = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2]]
-    faces += [[10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11]]
-    faces += [[6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    points = [[c / math.sqrt(sum(a * a for a in p)) for c in p] for p in corners]
-    midpoint: dict[tuple[int, int], int] = {}  # subdivision replaces every edge, so keys never repeat across levels
-
-    def mid(a: int, b: int) -> int:
-        key = (min(a, b), max(a, b))
-        if key not in midpoint:
-            m = [p + q for p, q in zip(points[a], points[b], strict=True)]
-            norm = math.sqrt(sum(c * c for c in m))
-            points.append([c / norm for c in m])
-            midpoint[key] = len(points) - 1
-        return midpoint[key]
-
-    for _ in range(level):
-        faces = [
-            face
-            for a, b, c in faces
-            for face in ([a, mid(a, b), mid(c, a)], [b, mid(b, c), mid(a, b)], [c, mid(c, a), mid(b, c)])
-            + ([mid(a, b), mid(b, c), mid(c, a)],)
-        ]
-    return radius * torch.tensor(points, dtype=torch.float64), torch.tensor(faces, dtype=torch.int32)
+    """``n × n`` vertices spanning ``width`` in x and z at ``height``, centred on the y axis."""
+    x, faces = grid_sheet(n, n, width / (n - 1))
+    return torch.stack([x[:, 0] - 0.5 * width, torch.full_like(x[:, 0], height), x[:, 1] - 0.5 * width], 1), faces
 
 
 def _reference_energies() -> ClothEnergies:
@@ -96,7 +62,7 @@ def _reference_energies() -> ClothEnergies:
 def bench_cloth_step_large(device: str, size: str) -> Case:
     n = _SIDE[size]
     x, faces = _sheet(n, 1.0, 0.34)
-    body, body_faces = _icosphere(3, 0.3)
+    body, body_faces = icosphere(3, 0.3)
     config = ClothConfig()
     body = body.to(backend.torch_device())
     empty = torch.zeros(0, dtype=torch.int64, device=body.device)

@@ -1,12 +1,12 @@
 """Garment simulator (PhysAvatar §3.2, Appendix A.3): closed-form statics, contact safety, determinism, bad input."""
 
-import math
 
 import pytest
 import torch
 
 from kernels import backend
 from physavatar.cloth import ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
+from physavatar.shapes import grid_sheet, icosphere
 
 F64 = torch.float64
 
@@ -18,45 +18,6 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(threads)
-
-
-def _grid(nx: int, ny: int, spacing: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """``nx × ny`` vertices in the xy-plane, square cells split by a diagonal, consistently oriented."""
-    i, j = torch.meshgrid(torch.arange(nx), torch.arange(ny), indexing="ij")
-    x = torch.stack([spacing * i.reshape(-1).to(F64), spacing * j.reshape(-1).to(F64), torch.zeros(nx * ny, dtype=F64)])
-    v = (i * ny + j)[:-1, :-1].reshape(-1)
-    faces = torch.cat([torch.stack([v, v + ny, v + 1], 1), torch.stack([v + 1, v + ny, v + ny + 1], 1)])
-    return x.T.contiguous(), faces.to(torch.int32)
-
-
-def _icosphere(level: int, radius: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Outward-oriented icosphere centred at the origin."""
-    t = (1.0 + 5.0**0.5) / 2.0
-    corners = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t]]
-    corners += [[0, -1, -t], [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    faces = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2]]
-    faces += [[10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11]]
-    faces += [[6, 2, 10], [8, 6, 7], [9, 8, 1]]
-    points = [torch.tensor(c, dtype=F64) / math.sqrt(sum(a * a for a in c)) for c in corners]
-    midpoint: dict[tuple[int, int], int] = {}  # subdivision replaces every edge, so keys never repeat across levels
-
-    for _ in range(level):
-
-        def mid(a: int, b: int) -> int:
-            key = (min(a, b), max(a, b))
-            if key not in midpoint:
-                m = points[a] + points[b]
-                points.append(m / torch.linalg.norm(m))
-                midpoint[key] = len(points) - 1
-            return midpoint[key]
-
-        faces = [
-            face
-            for a, b, c in faces
-            for face in ([a, mid(a, b), mid(c, a)], [b, mid(b, c), mid(a, b)], [c, mid(c, a), mid(b, c)])
-            + ([mid(a, b), mid(b, c), mid(c, a)],)
-        ]
-    return radius * torch.stack(points), torch.tensor(faces, dtype=torch.int32)
 
 
 def _on_device(*tensors):
@@ -85,7 +46,7 @@ def test_hanging_strip_stretches_as_a_bar_under_its_own_weight(device):
     ``∫₀ᴸ ε ds = ρ g L² / (2E)``: 2.8 mm for cotton over 1 m.
     """
     length, spacing = 1.0, 0.025
-    x, faces = _grid(3, round(length / spacing) + 1, spacing)  # 5 cm wide, y from 0 to L
+    x, faces = grid_sheet(3, round(length / spacing) + 1, spacing)  # 5 cm wide, y from 0 to L
     config = ClothConfig(static=True, newton_tolerance=1e-9, max_newton_iterations=30)
     solver = SolverCloth(x, faces, config, torch.zeros(0, 3, dtype=torch.int32))
     top = (x[:, 1] == x[:, 1].max()).nonzero().squeeze(1)
@@ -111,7 +72,7 @@ def test_cantilever_deflects_as_euler_bernoulli_predicts(device):
     """
     spacing, length = 0.005, 0.1
     cells = round(length / spacing)
-    x, faces = _grid(cells + 2, 5, spacing)
+    x, faces = grid_sheet(cells + 2, 5, spacing)
     probe = ClothConfig(static=True)
     rigidity = 4.8 * bending_stiffness(probe)
     beam = length + 0.5 * spacing
@@ -127,9 +88,9 @@ def test_cantilever_deflects_as_euler_bernoulli_predicts(device):
 
 
 def _sheet_over_sphere(n: int, config: ClothConfig | None = None):
-    x, faces = _grid(n, n, 0.5 / (n - 1))
+    x, faces = grid_sheet(n, n, 0.5 / (n - 1))
     x = torch.stack([x[:, 0] - 0.25, torch.full_like(x[:, 0], 0.24), x[:, 1] - 0.25], 1)  # 4 cm above the top
-    body, body_faces = _icosphere(2, 0.2)
+    body, body_faces = icosphere(2, 0.2)
     solver = SolverCloth(x, faces, config or ClothConfig(), body_faces)
     body = body.to(backend.torch_device())
     control = ClothControl(body, body, *_on_device(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3, dtype=F64)))
@@ -171,7 +132,7 @@ def test_cpu_steps_are_bitwise_reproducible(device):
 
 
 def test_bad_input_raises_clear_errors(device):
-    x, faces = _grid(4, 4, 0.1)
+    x, faces = grid_sheet(4, 4, 0.1)
     no_body = torch.zeros(0, 3, dtype=torch.int32)
     for field, value, words in (
         ("density", 100.0, "density"),
@@ -188,7 +149,7 @@ def test_bad_input_raises_clear_errors(device):
     with pytest.raises(ValueError, match="more than two faces"):
         SolverCloth(x, torch.cat([faces, torch.tensor([[0, 1, 5]], dtype=torch.int32)]), ClothConfig(), no_body)
     # a garment inside the body: the sheet sits within the sphere, far from its surface
-    body, body_faces = _icosphere(1, 1.0)
+    body, body_faces = icosphere(1, 1.0)
     solver = SolverCloth(x - 0.15, faces, ClothConfig(), body_faces)
     body = body.to(backend.torch_device())
     control = ClothControl(body, body, *_on_device(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3, dtype=F64)))
