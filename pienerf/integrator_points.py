@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pienerf.qgmls import QGMLSBasis, ShapeValues, support_radii, voronoi_partition
+from pienerf.qgmls import _EXACT, QGMLSBasis, ShapeValues, _as_points, support_radii, voronoi_partition
 
 __all__ = [
     "IntegratorPoints",
@@ -35,7 +35,6 @@ __all__ = [
 ]
 
 _CHUNK = 2048
-_EXACT = "donot_use_mm_for_euclid_dist"  # cdist by differences: exact zeros, no cancellation
 
 
 @dataclass(frozen=True)
@@ -457,15 +456,6 @@ def _check_count(count: int, available: int, what: str, noun: str) -> None:
             f"{what}: asked for {count} new points but there are only {available} {noun}; "
             "ask for fewer or sample the object more densely"
         )
-
-
-def _as_points(points: torch.Tensor, name: str) -> torch.Tensor:
-    points = torch.as_tensor(points)
-    if points.dim() != 2 or points.shape[1] != 3:
-        raise ValueError(f"{name} must be [N, 3], got {tuple(points.shape)}")
-    if not bool(torch.isfinite(points).all()):
-        raise ValueError(f"{name} contains non-finite coordinates")
-    return points.to(torch.float64)
 
 
 def _as_weights(weights: torch.Tensor, count: int, name: str) -> torch.Tensor:
