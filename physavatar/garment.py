@@ -27,6 +27,7 @@ __all__ = [
     "boundary_targets",
     "load_garment",
     "place_on_body",
+    "procedural_skirt",
     "select_boundary",
 ]
 
@@ -412,3 +413,88 @@ def boundary_targets(
         weights = body.surface_weights(rest_positions.to(body.vertices))
     transforms = body.skeleton.skinning_transforms(rotations, root_translation)
     return linear_blend_skinning(rest_positions.to(transforms), weights, transforms)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A procedural skirt (the embedded garment of the synthetic capture)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def procedural_skirt(
+    body: Body,
+    rings: int = 10,
+    segments: int = 28,
+    top: float = 1.06,
+    length: float = 0.40,
+    clearance: float = 0.012,
+    flare: float = 0.12,
+) -> Garment:
+    """A flared tube skirt fitted around the rest body: a small garment needing no data files.
+
+    Each ring is an ellipse about the body's axis whose half-axes clear the body's cross-section at that height by
+    ``clearance``; the half-axes never shrink downwards (the skirt hangs from the hips, it does not hug the
+    thighs) and grow linearly by up to ``flare`` at the hem. The mesh is an open tube (waist and hem are its two
+    boundary loops), triangulated with alternating diagonals, outward-oriented.
+
+    Args:
+        body: the body in its rest pose.
+        rings: vertex rings from waist to hem (≥ 2).
+        segments: vertices per ring (≥ 6).
+        top: height of the waist ring, m.
+        length: waist-to-hem height, m.
+        clearance: gap to the body at every ring, m (above the contact distance).
+        flare: extra radius at the hem, m.
+
+    Returns:
+        :class:`Garment` named ``"skirt"`` with ``rings · segments`` vertices.
+
+    Raises:
+        ValueError: too few rings or segments, non-positive sizes, or a ring height where the body has no
+            cross-section.
+    """
+    if rings < 2 or segments < 6:
+        raise ValueError(f"a skirt needs rings >= 2 and segments >= 6, got {rings} and {segments}")
+    if not (length > 0.0 and clearance > 0.0 and flare >= 0.0):
+        raise ValueError(f"length ({length}) and clearance ({clearance}) must be positive and flare ({flare}) >= 0")
+    v = body.vertices.detach().to("cpu", torch.float64).numpy()
+    heights = top - length * np.arange(rings) / (rings - 1)
+    angle = 2.0 * math.pi * np.arange(segments) / segments
+    torso = np.abs(v[:, 0]) < 0.3  # keeps the hanging hands out of the hip's cross-section
+    centre = np.zeros((rings, 2))
+    half = np.zeros((rings, 2))
+    for r, y in enumerate(heights):
+        slab = v[torso & (np.abs(v[:, 1] - y) < 0.02)]
+        if slab.shape[0] == 0:
+            raise ValueError(f"the body has no cross-section at height {y:.3f} m; lower top or shorten the skirt")
+        lo, hi = slab[:, [0, 2]].min(0), slab[:, [0, 2]].max(0)
+        centre[r] = 0.5 * (lo + hi)
+        half[r] = 0.5 * (hi - lo)
+    half = np.maximum.accumulate(half, axis=0) + flare * np.linspace(0.0, 1.0, rings)[:, None]
+    centre[:] = centre[0]  # a straight axis: the skirt hangs, it does not follow the legs' cross-section
+    y = np.broadcast_to(heights[:, None], (rings, segments))
+
+    def tube(pad: float) -> np.ndarray:
+        x = centre[:, None, 0] + (half[:, None, 0] + pad) * np.sin(angle)[None]
+        z = centre[:, None, 1] + (half[:, None, 1] + pad) * np.cos(angle)[None]
+        return np.stack([x, y, z], -1).reshape(-1, 3)
+
+    # The body's cross-section is not an ellipse: pad the half-axes until every vertex clears it.
+    pad = clearance
+    while _clearance(torch.from_numpy(tube(pad)), body.to("cpu", torch.float64)) < clearance:
+        pad += 0.25 * clearance
+        if pad > 0.5:
+            raise ValueError("the skirt cannot clear the body; check the body's rest pose")
+    vertices = tube(pad)
+    r, s = np.meshgrid(np.arange(rings - 1), np.arange(segments), indexing="ij")
+    a, b = r * segments + s, r * segments + (s + 1) % segments
+    c, d = a + segments, b + segments
+    flip = ((r + s) % 2).astype(bool)  # alternating diagonals: no preferred fold direction
+    faces = np.concatenate(
+        [
+            np.where(flip[..., None], np.stack([a, c, d], -1), np.stack([a, c, b], -1)).reshape(-1, 3),
+            np.where(flip[..., None], np.stack([a, d, b], -1), np.stack([b, c, d], -1)).reshape(-1, 3),
+        ]
+    )
+    garment = Garment(torch.tensor(vertices), torch.tensor(faces, dtype=torch.int64), "skirt")
+    _validate(vertices, faces, "skirt", welded=True)
+    return garment

@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from physavatar.body import Body
-from physavatar.garment import boundary_targets, load_garment, place_on_body, select_boundary
+from physavatar.garment import boundary_targets, load_garment, place_on_body, procedural_skirt, select_boundary
 
 
 @pytest.fixture(scope="module")
@@ -33,9 +33,9 @@ def test_unwelded_tshirt_is_welded_into_a_manifold_mesh(garments):
     _, counts = np.unique(edges, axis=0, return_counts=True)
     assert counts.max() == 2 and (counts == 2).sum() > 0.9 * counts.size  # a sheet with a boundary
     # the weld keeps the surface: every original corner lies on a welded vertex
-    distance, _ = trimesh.proximity.ProximityQuery(trimesh.Trimesh(garment.vertices.numpy(), garment.faces.numpy(),
-                                                                   process=False)).vertex(np.asarray(raw.vertices) *
-                                                                                          0.1)
+    distance, _ = trimesh.proximity.ProximityQuery(
+        trimesh.Trimesh(garment.vertices.numpy(), garment.faces.numpy(), process=False)
+    ).vertex(np.asarray(raw.vertices) * 0.1)
     assert distance.max() < 1e-5
 
 
@@ -127,3 +127,21 @@ def test_boundary_targets_follow_the_skinning(garments, body):
     assert float((turned - rest).norm(dim=1).max()) > 0.02
     with pytest.raises(ValueError, match=r"non-empty \[D, 3\]"):
         boundary_targets(body, rest[:0], rotations)
+
+
+def test_procedural_skirt_is_a_manifold_tube_clear_of_the_body(body):
+    skirt = procedural_skirt(body, rings=6, segments=16, clearance=0.01)
+    mesh = trimesh.Trimesh(skirt.vertices.numpy(), skirt.faces.numpy(), process=False)
+    assert skirt.vertices.shape == (96, 3) and skirt.faces.shape == (2 * 5 * 16, 3)
+    assert mesh.is_winding_consistent
+    # Outward orientation: face normals point away from the skirt's axis.
+    axis = skirt.vertices[:, [0, 2]].mean(0)
+    radial = torch.as_tensor(mesh.triangles_center[:, [0, 2]]) - axis
+    assert bool(((radial * torch.as_tensor(mesh.face_normals[:, [0, 2]])).sum(1) > 0).all())
+    assert float(body.signed_distance(skirt.vertices.to(body.vertices)).min()) >= 0.01 - 1e-9
+    # Waist and hem are its only boundary loops; the waist is the Dirichlet ring.
+    assert place_on_body(skirt, body) is skirt
+    ring = select_boundary(skirt, body, mode="auto")
+    assert torch.equal(ring, torch.arange(16))
+    with pytest.raises(ValueError, match="rings >= 2"):
+        procedural_skirt(body, rings=1)
