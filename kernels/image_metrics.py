@@ -1,4 +1,4 @@
-"""Image quality metrics of novel-view synthesis: PSNR and SSIM, in torch (any device, batched).
+"""Image quality metrics: PSNR and SSIM, in torch (any device, batched, differentiable).
 
 SSIM is the standard one of Wang et al. 2004 ("Image quality assessment: from error visibility to
 structural similarity", Eq. 13): local means, variances and covariance under an 11×11 Gaussian window of
