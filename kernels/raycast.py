@@ -30,7 +30,7 @@ from kernels import backend
 # The renderer is not differentiated; Warp's adjoint code would only add compile time.
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["MeshBVH", "RayHits", "Shading", "cast_rays", "shade"]
+__all__ = ["ClosestPoints", "MeshBVH", "RayHits", "Shading", "cast_rays", "shade"]
 
 # Warp's ray queries take a finite ``max_t``; an infinite limit becomes this many metres.
 _FAR = wp.constant(1.0e30)
@@ -61,6 +61,42 @@ class Shading(NamedTuple):
 
     rgba: torch.Tensor
     depth: torch.Tensor
+
+
+class ClosestPoints(NamedTuple):
+    """Closest surface points of a batch of query points.
+
+    Attributes:
+        distance: ``[P]`` float32 unsigned distance to the mesh, metres; ``inf`` beyond the search radius.
+        face: ``[P]`` int32 face holding the closest point, −1 beyond the search radius.
+        bary: ``[P, 2]`` float32 barycentrics ``(b1, b2)`` of the closest point in that face (as :class:`RayHits`).
+    """
+
+    distance: torch.Tensor
+    face: torch.Tensor
+    bary: torch.Tensor
+
+
+@wp.kernel
+def _closest_points(
+    mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    max_distance: float,
+    distance_out: wp.array(dtype=float),
+    face_out: wp.array(dtype=wp.int32),
+    bary_out: wp.array(dtype=wp.vec2),
+):
+    i = wp.tid()
+    query = wp.mesh_query_point_no_sign(mesh, points[i], max_distance)
+    if query.result:
+        closest = wp.mesh_eval_position(mesh, query.face, query.u, query.v)
+        distance_out[i] = wp.length(closest - points[i])
+        face_out[i] = query.face
+        bary_out[i] = wp.vec2(query.v, 1.0 - query.u - query.v)
+    else:
+        distance_out[i] = wp.inf
+        face_out[i] = -1
+        bary_out[i] = wp.vec2(0.0, 0.0)
 
 
 @wp.kernel
@@ -161,6 +197,34 @@ class MeshBVH:
                 device=backend.warp_device(),
             )
         return RayHits(t, face, bary)
+
+    def closest(self, points: torch.Tensor, max_distance: float = math.inf) -> ClosestPoints:
+        """Closest point of the mesh's surface to each of ``points [P, 3]`` (metres) within ``max_distance``.
+
+        The BVH prunes every box farther than the best distance found so far, so a query costs about
+        ``O(log F)``; distances are exact point–triangle distances (float32).
+        """
+        _check_vertices(points, "points")
+        count = points.shape[0]
+        device = points.device
+        distance = torch.empty(count, dtype=torch.float32, device=device)
+        face = torch.empty(count, dtype=torch.int32, device=device)
+        bary = torch.empty(count, 2, dtype=torch.float32, device=device)
+        if count:
+            wp.launch(
+                _closest_points,
+                dim=count,
+                inputs=[
+                    self.mesh.id,
+                    backend.to_warp(points.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
+                    _finite_limit(max_distance),
+                    backend.to_warp(distance),
+                    backend.to_warp(face),
+                    backend.to_warp(bary, dtype=wp.vec2),
+                ],
+                device=backend.warp_device(),
+            )
+        return ClosestPoints(distance, face, bary)
 
 
 def cast_rays(

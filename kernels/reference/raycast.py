@@ -11,7 +11,7 @@ import math
 
 import torch
 
-__all__ = ["cast_rays", "shade"]
+__all__ = ["cast_rays", "closest_points", "shade"]
 
 # Ray-triangle pairs per chunk, so the [rows, F] intermediates stay in bounded memory.
 _PAIRS_PER_CHUNK = 1 << 22
@@ -71,6 +71,34 @@ def cast_rays(
         bary = torch.stack([b1[rows_index, face], b2[rows_index, face]], dim=-1)
         best_bary[start : start + rows] = torch.where(any_hit[:, None], bary, torch.zeros_like(bary))
     return best_t, best_face, best_bary
+
+
+def closest_points(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Unsigned distance ``[P]`` (float64, m) from each point to the mesh, by testing every triangle.
+
+    A point whose projection onto a triangle's plane falls inside the triangle is at its plane distance; otherwise
+    the closest point lies on one of the three edges, each a clamped segment projection.
+    """
+    tri = vertices.detach().to(torch.float64)[faces.long()]
+    points = points.detach().to(torch.float64)
+    v0, v1, v2 = tri[:, 0], tri[:, 1], tri[:, 2]
+    normal = torch.nn.functional.normalize(torch.linalg.cross(v1 - v0, v2 - v0), dim=-1)
+    best = torch.full((points.shape[0],), math.inf, dtype=torch.float64)
+    rows = max(1, _PAIRS_PER_CHUNK // max(tri.shape[0], 1))
+    for start in range(0, points.shape[0], rows):
+        p = points[start : start + rows, None]  # [C, 1, 3]
+        height = ((p - v0) * normal).sum(-1)
+        foot = p - height[..., None] * normal
+        inside = torch.ones_like(height, dtype=torch.bool)
+        for a, b in ((v0, v1), (v1, v2), (v2, v0)):
+            inside &= (torch.linalg.cross((b - a).expand_as(foot), foot - a) * normal).sum(-1) >= 0.0
+        distance = torch.where(inside, height.abs(), torch.full_like(height, math.inf))
+        for a, b in ((v0, v1), (v1, v2), (v2, v0)):
+            edge = b - a
+            u = (((p - a) * edge).sum(-1) / (edge * edge).sum(-1).clamp_min(1e-300)).clamp(0.0, 1.0)
+            distance = torch.minimum(distance, torch.linalg.norm(p - (a + u[..., None] * edge), dim=-1))
+        best[start : start + rows] = distance.min(dim=1).values
+    return best
 
 
 def shade(

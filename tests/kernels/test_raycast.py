@@ -49,6 +49,25 @@ def test_cast_matches_brute_force(device):
     torch.testing.assert_close(point, origins.double()[hit] + t_ref[hit, None] * unit)
 
 
+def test_closest_points_match_brute_force(device):
+    vertices, faces = _bumpy_sphere(0)
+    generator = torch.Generator().manual_seed(3)
+    points = (torch.rand(600, 3, generator=generator) * 2.0 - 1.0) * 2.0  # inside, near and far from the surface
+    bvh = MeshBVH(*_on_device(vertices, faces))
+    found = bvh.closest(points.to(backend.torch_device()))
+    expected = reference.closest_points(vertices, faces, points)
+    torch.testing.assert_close(found.distance.cpu().double(), expected, rtol=1e-4, atol=2e-6)
+    # Face and barycentrics name a surface point at that distance.
+    corners = vertices.double()[faces.long()[found.face.cpu().long()]]
+    b = found.bary.cpu().double()
+    surface = (1 - b[:, :1] - b[:, 1:]) * corners[:, 0] + b[:, :1] * corners[:, 1] + b[:, 1:] * corners[:, 2]
+    torch.testing.assert_close(torch.linalg.norm(surface - points.double(), dim=1), expected, rtol=1e-4, atol=2e-6)
+    near = bvh.closest(points.to(backend.torch_device()), max_distance=0.05)
+    far = expected >= 0.05
+    assert bool(far.any()) and bool(torch.isinf(near.distance.cpu()[far]).all())
+    assert bool((near.face.cpu()[far] == -1).all())
+
+
 def test_max_distance_turns_far_hits_into_misses(device):
     vertices, faces = _bumpy_sphere(2)
     origins, directions = _rays(300, 3)
