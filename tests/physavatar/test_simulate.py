@@ -63,6 +63,50 @@ def test_skirt_on_walking_mannequin_stays_outside_and_follows(device, shared_dat
     assert record["summary"]["min_distance_body_m"] > 0.0
 
 
+_CPU_SKIRT = """
+import sys, numpy as np
+from physavatar.body import Body
+from physavatar.garment import load_garment, place_on_body, select_boundary
+from physavatar.motion import walk
+from physavatar.simulate import simulate
+body = Body.mannequin(spacing=0.03)
+skirt = place_on_body(load_garment(sys.argv[1]), body)
+result = simulate(skirt, body, walk(body.skeleton), frames=int(sys.argv[2]), device="cpu", progress=False,
+                  boundary=select_boundary(skirt, body, mode="waist"))
+np.save(sys.argv[3], result.garment_frames.numpy())
+"""
+
+
+def test_cuda_skirt_agrees_with_cpu_over_ten_frames(device, shared_data, body, tmp_path):
+    """The first 10 frames of the skirt on CUDA (CG solves) agree with the CPU's (direct solves) within 0.1 mm."""
+    if device != "cuda":
+        pytest.skip("compares a CUDA run with a CPU run; run the suite with --device cuda on a GPU machine")
+    path, frames = shared_data / "garments" / "skirt1252.obj", 10
+    cpu_file = tmp_path / "cpu.npy"
+    # Taichi holds one architecture per process: the CPU run gets a process of its own.
+    run = subprocess.run(
+        [sys.executable, "-c", _CPU_SKIRT, str(path), str(frames), str(cpu_file)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert run.returncode == 0, run.stderr
+    skirt = place_on_body(load_garment(path), body)
+    result = simulate(
+        skirt,
+        body,
+        walk(body.skeleton),
+        frames=frames,
+        device=device,
+        progress=False,
+        boundary=select_boundary(skirt, body, mode="waist"),
+    )
+    cpu = torch.from_numpy(np.load(cpu_file))
+    gap = float(torch.linalg.norm(result.garment_frames - cpu, dim=2).max())
+    assert gap < 1e-4, f"CPU and CUDA differ by {gap * 1e3:.4f} mm"
+
+
 def test_simulate_refuses_more_frames_than_the_motion(device, shared_data, body):
     skirt = load_garment(shared_data / "garments" / "skirt1252.obj")
     with pytest.raises(ValueError, match=r"frames \(200\) must lie in 1\.\.100"):
