@@ -45,6 +45,7 @@ def ssim(
     sigma: float = 1.5,
     k1: float = 0.01,
     k2: float = 0.03,
+    compute_dtype: torch.dtype = torch.float64,
 ) -> torch.Tensor:
     """Mean structural similarity of Wang et al. 2004 (Eq. 13) with a Gaussian window (module docstring).
 
@@ -54,6 +55,8 @@ def ssim(
         max_value: ``L``, the dynamic range.
         window_size, sigma: the Gaussian window, pixels.
         k1, k2: stabilising constants, ``C_i = (k_i L)²``.
+        compute_dtype: precision of the local statistics; float64 for reported metrics, float32 where SSIM is a
+            loss evaluated thousands of times (4× faster on a CPU, differences ~1e-6).
 
     Returns:
         Scalar tensor in ``[-1, 1]``: the SSIM map averaged over valid positions, channels and images.
@@ -66,8 +69,8 @@ def ssim(
             f"images of {prediction.shape[-3]}x{prediction.shape[-2]} pixels are smaller than the "
             f"{window_size}x{window_size} SSIM window; compare larger images or pass a smaller window_size"
         )
-    x = _to_nchw(prediction)
-    y = _to_nchw(target)
+    x = _to_nchw(prediction, compute_dtype)
+    y = _to_nchw(target, compute_dtype)
     channels = x.shape[1]
     g = gaussian_window(window_size, sigma, dtype=x.dtype, device=x.device)
 
@@ -84,8 +87,8 @@ def ssim(
     return ssim_map.mean().to(prediction.dtype)
 
 
-def _to_nchw(images: torch.Tensor) -> torch.Tensor:
-    images = images.double()
+def _to_nchw(images: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
+    images = images.to(dtype)
     if images.dim() == 3:
         images = images[None]
     return images.permute(0, 3, 1, 2).contiguous()

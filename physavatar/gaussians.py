@@ -239,4 +239,4 @@ def photometric_loss(image: torch.Tensor, target: torch.Tensor, weight_l1: float
     minimised is the dissimilarity ``1 − SSIM``. ``λ = 0.8`` as there.
     """
     l1 = (image - target).abs().mean()
-    return weight_l1 * l1 + (1.0 - weight_l1) * (1.0 - ssim(image, target))
+    return weight_l1 * l1 + (1.0 - weight_l1) * (1.0 - ssim(image, target, compute_dtype=torch.float32))
