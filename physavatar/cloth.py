@@ -14,12 +14,17 @@ Paper parameters and their mapping. PhysAvatar estimates ``(ρ, κ_s, κ_b)`` wi
 * ``ρ`` is a volumetric density, kg/m³; a vertex carries ``m = ρ h Σ A_f / 3`` (``h`` the thickness, lumped mass);
 * ``κ_s`` multiplies a base Young's modulus: ``E = κ_s E₀`` (cotton: ``E₀ = 0.821`` MPa, ``ν = 0.243``,
   ``h = 0.318`` mm); the membrane has the plane-stress Lamé parameters ``h μ``, ``h λ`` of ``E`` and ``ν``;
-* ``κ_b`` multiplies the hinge stiffness ``k = E h³ / (24 (1 − ν²))`` of that same ``E``, so the bending stiffness
-  is ``k = κ_b κ_s E₀ h³ / (24 (1 − ν²))`` (the driver leaves ``κ_b`` undivided by ``κ_s``), and each hinge stores
-  ``k w̄ (θ − θ̄)²`` with ``w̄ = 3‖ē‖²/Ā``. Its continuum limit depends on the mesh: on a square grid with one
-  diagonal direction it is ``3k [(c_x − c_xy)² + (c_y − c_xy)² + 4 c_xy²]`` per unit area (curvatures ``c``), so
-  cylindrical bending has rigidity ``6k`` (3× the plate's ``D = E h³/(12(1 − ν²))``) and a free narrow strip
-  ``4.8 k`` per unit width (tests/physavatar/test_cloth.py derives both).
+* ``κ_b`` multiplies the hinge stiffness of the base modulus, ``k = κ_b E₀ h³ / (24 (1 − ν²))``, independently of
+  ``κ_s``, and each hinge stores ``k w̄ (θ − θ̄)²`` with ``w̄ = 3‖ē‖²/Ā``. Its continuum limit depends on the mesh:
+  on a square grid with one diagonal direction it is ``3k [(c_x − c_xy)² + (c_y − c_xy)² + 4 c_xy²]`` per unit
+  area (curvatures ``c``), so cylindrical bending has rigidity ``6k`` (3× the plate's
+  ``D = κ_b E₀ h³/(12(1 − ν²))``) and a free narrow strip ``4.8 k`` per unit width (tests/physavatar/test_cloth.py
+  derives both).
+
+So ``ρ`` scales the inertia, ``κ_s`` the membrane and ``κ_b`` the bending alone. Scaling all three by ``s`` scales
+the whole incremental potential by ``s`` (the barrier stiffness follows the mean mass, friction the barrier force,
+gravity enters through the inertia) and leaves its minimiser, the motion, unchanged: only ``κ_s/ρ`` and ``κ_b/ρ``
+can be told from geometry. :meth:`SolverCloth.sensitivity_step` differentiates one step with respect to them.
 
 Kinematic vertices. The body collider and the garment's Dirichlet (boundary) vertices move on straight lines from
 their start-of-step positions to their targets. They are eliminated from the linear system: each Newton
@@ -58,6 +63,7 @@ __all__ = [
     "ClothControl",
     "ClothEnergies",
     "ClothState",
+    "SENSITIVITY_PARAMETERS",
     "SolverCloth",
     "StepStats",
     "bending_stiffness",
@@ -70,6 +76,7 @@ F64 = torch.float64
 DENSITY_RANGE = (200.0, 640.0)
 STIFFNESS_RANGE = (0.1, 8.0)
 PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
+SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
 
 
 @dataclass(frozen=True)
@@ -79,7 +86,7 @@ class ClothConfig:
     Attributes:
         density: volumetric density ``ρ``, kg/m³, in the paper's range 200–640 (areal density ``ρ h``).
         kappa_s: membrane stiffness ``κ_s``, 1, in 0.1–8: Young's modulus ``E = κ_s · base_young``.
-        kappa_b: bending stiffness ``κ_b``, 1, in 0.1–8: hinge stiffness ``κ_b E h³ / (24 (1 − ν²))``.
+        kappa_b: bending stiffness ``κ_b``, 1, in 0.1–8: hinge stiffness ``κ_b E₀ h³ / (24 (1 − ν²))``.
         base_young: base Young's modulus ``E₀``, Pa (C-IPC's isotropic cotton, 0.821 MPa).
         poisson: Poisson's ratio ``ν``, in ``[0, 0.5)``.
         thickness: sheet thickness ``h``, m.
@@ -258,12 +265,14 @@ def lumped_masses(x: torch.Tensor, faces: torch.Tensor, areal_density: float) ->
 
 
 def bending_stiffness(config: ClothConfig) -> float:
-    """Hinge stiffness ``k = κ_b E h³ / (24 (1 − ν²))``, J, with ``E = κ_s E₀`` (C-IPC, PhysAvatar's κ_b; §3.2).
+    """Hinge stiffness ``k = κ_b E₀ h³ / (24 (1 − ν²))``, J (PhysAvatar's κ_b, §3.2).
 
-    The hinge energy is ``k w̄ (θ − θ̄)²`` (:func:`kernels.cloth.bending_energy`); on a square grid bent about a
-    grid axis its continuum limit has bending rigidity ``6 k`` per unit width (``4.8 k`` for a free strip).
+    ``κ_b`` multiplies the base modulus ``E₀`` directly, independently of the membrane's ``κ_s``, so that
+    ``(ρ, κ_s, κ_b)`` enter mass, membrane and bending separately. The hinge energy is ``k w̄ (θ − θ̄)²``
+    (:func:`kernels.cloth.bending_energy`); on a square grid bent about a grid axis its continuum limit has
+    bending rigidity ``6 k`` per unit width (``4.8 k`` for a free strip).
     """
-    e, h, nu = config.young, config.thickness, config.poisson
+    e, h, nu = config.base_young, config.thickness, config.poisson
     return config.kappa_b * e * h**3 / (24.0 * (1.0 - nu * nu))
 
 
@@ -533,25 +542,14 @@ class SolverCloth:
             ValueError: malformed inputs, a static solve without boundary vertices, or a garment that starts
                 inside or touching the body collider.
         """
-        if backend.torch_device().type != "cpu":
-            return self._step(state_in, state_out, control, dt)
-        # The step's tensors are small (thousands of rows): torch's intra-op threads cost more to wake than they
-        # save, and on shared cores they wait on each other. One thread ran the 1k-vertex sheet step 5x faster.
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            return self._step(state_in, state_out, control, dt)
-        finally:
-            torch.set_num_threads(threads)
+        return _one_thread_on_cpu(self._step, state_in, state_out, control, dt)
 
-    def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
-        cfg = self.config
-        timing = dict.fromkeys(PHASES, 0.0)
+    def _context(self, state_in: ClothState, control: ClothControl, dt: float):
+        """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet)."""
         x_start, b0, b1, fixed, target_fixed = self._check_step(state_in, control, dt)
         v, nb = self.vertex_count, self.body_vertex_count
         device = x_start.device
         X = torch.cat([x_start, b0]).contiguous()
-        X_start = X.clone()
         kinematic = torch.zeros(v + nb, dtype=torch.bool, device=device)
         kinematic[fixed] = True
         kinematic[v:] = True
@@ -561,10 +559,18 @@ class SolverCloth:
         dof = torch.full((v + nb,), -1, dtype=torch.int64, device=device)
         free = (~kinematic).nonzero().squeeze(1)
         dof[free] = torch.arange(free.numel(), device=device)
-        x_hat = x_start + dt * state_in.v + dt * dt * self.gravity
-        kappa = barrier_stiffness(cfg, float(self.mass.mean()), dt)
+        x_hat = x_start + dt * state_in.v.to(device, F64) + dt * dt * self.gravity
+        kappa = barrier_stiffness(self.config, float(self.mass.mean()), dt)
         x_rest_all = torch.cat([self.x_rest, b0])
-        ctx = _StepContext(dt, kappa, X_start, x_hat, x_rest_all, kinematic, dof, free, None)
+        ctx = _StepContext(dt, kappa, X.clone(), x_hat, x_rest_all, kinematic, dof, free, None)
+        return X, target, ctx
+
+    def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+        cfg = self.config
+        timing = dict.fromkeys(PHASES, 0.0)
+        X, target, ctx = self._context(state_in, control, dt)
+        v, kinematic, free = self.vertex_count, ctx.kinematic, ctx.free
+        x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
 
         start = time.perf_counter()
         pairs = self._broad_phase(X, torch.zeros_like(X), ctx)
@@ -619,6 +625,132 @@ class SolverCloth:
         near = self._near(X, pairs, ctx)
         d_body, d_self, contacts = self._min_distances(X, near)
         return StepStats(iterations, converged, d_body, d_self, contacts, timing)
+
+    # -- parameter sensitivities ------------------------------------------------------------------------------
+
+    def sensitivity_step(
+        self,
+        state_in: ClothState,
+        state_out: ClothState,
+        control: ClothControl,
+        dt: float,
+        s_x: torch.Tensor,
+        s_v: torch.Tensor,
+        parameters: tuple[str, ...] = SENSITIVITY_PARAMETERS[1:],
+        exact_hessian: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Carry the derivatives of the state with respect to material parameters through one step (Eq. 5).
+
+        Call it right after :meth:`step` with the same ``state_in`` (kept unchanged: pass a separate
+        ``state_out`` to the step), ``control`` and ``dt``, and with the step's result as ``state_out``. The end
+        state ``x⁺`` is a minimiser of the incremental potential ``E(x⁺; x, v, θ)``, so on the free vertices
+        ``∇E(x⁺) = 0``; differentiating that identity with respect to ``θ`` (implicit function theorem) gives,
+        with ``S = ∂x/∂θ`` and ``S_v = ∂v/∂θ`` at the start of the step,
+
+        ``H S⁺ = M (S + Δt S_v) + Δt² H_D S − ∂_θ ∇E``  on the free DOFs,  ``S⁺ = 0`` on Dirichlet DOFs,
+        ``S_v⁺ = (S⁺ − S) / Δt``,
+
+        where ``H`` is the Hessian of ``E`` at ``x⁺`` (inertia, membrane, bending, barrier and friction, without
+        the PSD projection of the Newton solve unless ``exact_hessian`` is False: the implicit function theorem
+        needs the true Hessian, which at a minimiser is positive definite as a whole even where single elements
+        are not), ``H_D`` the friction Hessian (friction depends on the displacement ``x⁺ − x`` of the step, hence
+        the ``S`` term) and ``∂_θ ∇E`` the explicit derivative of the gradient:
+
+        * ``κ_s``: ``Δt² ∇Ψ_s / κ_s`` (the membrane is linear in ``κ_s``);
+        * ``κ_b``: ``Δt² ∇Ψ_b / κ_b`` (the bending is linear in ``κ_b``);
+        * ``ρ``: ``(M (x⁺ − x̂) + Δt² (κ∇B + ∇D)) / ρ``: the inertia (gravity included) is linear in ``ρ``, and so
+          are barrier and friction while :attr:`ClothConfig.barrier_stiffness` is ``None`` (``κ ∝`` mean mass);
+          with a fixed barrier stiffness only the inertia term remains.
+
+        In a static solve there is no inertia or friction: ``H S⁺ = −∂_θ ∇E`` and ``S_v⁺ = 0``.
+
+        Approximations, all of the simulator's own model: friction's lagged quantities (normal forces, contact
+        normals and closest-point weights, evaluated at the start of the step) are held constant; the contact
+        set is that of ``x⁺``; the body and the Dirichlet targets do not depend on ``θ``. The identity holds at
+        an exact minimiser, so the sensitivities are as accurate as the step's Newton tolerance allows. Cost:
+        one assembly and one sparse factorisation (direct solver; one CG solve per parameter on CUDA) per step.
+
+        Args:
+            state_in: garment state at the start of the step.
+            state_out: the state :meth:`step` returned.
+            control: the step's control.
+            dt: the step's size, s.
+            s_x: ``[V, 3, P]`` ``∂x/∂θ`` at the start of the step, m per parameter unit.
+            s_v: ``[V, 3, P]`` ``∂v/∂θ`` at the start of the step, m/s per parameter unit.
+            parameters: the ``P`` parameters, in the order of the last axis, from :data:`SENSITIVITY_PARAMETERS`
+                (``"density"`` in kg/m³, ``"kappa_s"``, ``"kappa_b"``).
+            exact_hessian: solve with the exact Hessian (True) or the PSD-projected one of the Newton solve.
+
+        Returns:
+            ``(s_x_out [V, 3, P], s_v_out [V, 3, P])`` at the end of the step.
+
+        Raises:
+            ValueError: malformed inputs or unknown parameter names.
+        """
+        return _one_thread_on_cpu(
+            self._sensitivity_step, state_in, state_out, control, dt, s_x, s_v, tuple(parameters), exact_hessian
+        )
+
+    def _sensitivity_step(self, state_in, state_out, control, dt, s_x, s_v, parameters, exact_hessian):
+        cfg = self.config
+        v, nb = self.vertex_count, self.body_vertex_count
+        unknown = [name for name in parameters if name not in SENSITIVITY_PARAMETERS]
+        if unknown or not parameters or len(set(parameters)) != len(parameters):
+            raise ValueError(
+                f"parameters {parameters} must be distinct names from {SENSITIVITY_PARAMETERS}, at least one"
+            )
+        count = len(parameters)
+        X_start, X, ctx = self._context(state_in, control, dt)  # X: the targets, body at the end of the step
+        device = X.device
+        for name, t in (("s_x", s_x), ("s_v", s_v)):
+            if tuple(t.shape) != (v, 3, count):
+                raise ValueError(
+                    f"{name} must have shape [{v}, 3, {count}] (vertices, xyz, parameters), got {list(t.shape)}"
+                )
+        if tuple(state_out.x.shape) != (v, 3):
+            raise ValueError(f"state_out.x must have shape [{v}, 3], got {list(state_out.x.shape)}")
+        X[:v] = torch.where(ctx.kinematic[:v, None], X[:v], state_out.x.to(device, F64))
+        s_x = s_x.to(device, F64)
+        s_v = s_v.to(device, F64)
+        dynamic = not cfg.static
+        if cfg.friction > 0.0 and dynamic:
+            pairs_start = self._broad_phase(X_start, torch.zeros_like(X_start), ctx)
+            ctx = ctx._replace(friction=self._lagged_friction(X_start, pairs_start, ctx))
+        pairs = self._broad_phase(X, torch.zeros_like(X), ctx)
+        parts: dict[str, torch.Tensor] = {}
+        _, grad, elements = self._potential(
+            X, self._near(X, pairs, ctx), ctx, hessian=True, project=not exact_hessian, parts=parts
+        )
+        rows, cols, blocks, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
+
+        rhs = X.new_zeros(v + nb, 3, count)
+        if dynamic:
+            rhs[:v] = self.mass[:, None, None] * (s_x + dt * s_v)
+            friction = ctx.friction
+            if friction is not None and friction.index.shape[0]:
+                _, _, f_hess = friction_potential(X - X_start, friction, cfg.friction_velocity * dt, True)
+                s_all = torch.cat([s_x, s_x.new_zeros(nb, 3, count)])
+                k = friction.index.shape[0]
+                coupled = torch.bmm(dt * dt * f_hess, s_all[friction.index].reshape(k, 12, count))
+                rhs.index_add_(0, friction.index.reshape(-1), coupled.reshape(k * 4, 3, count))
+        zero = torch.zeros_like(X)
+        for j, name in enumerate(parameters):
+            if name == "kappa_s":
+                explicit = parts.get("membrane", zero) / cfg.kappa_s
+            elif name == "kappa_b":
+                explicit = parts.get("bending", zero) / cfg.kappa_b
+            else:
+                explicit = parts.get("inertia", zero)
+                if cfg.barrier_stiffness is None:
+                    explicit = explicit + parts.get("contact", zero) + parts.get("friction", zero)
+                explicit = explicit / cfg.density
+            rhs[:, :, j] -= explicit
+        free = ctx.free
+        solution = self._solve(rows, cols, blocks, rhs[free].reshape(-1, count), free.numel())
+        s_x_out = s_x.new_zeros(v, 3, count)
+        s_x_out[free] = solution.view(-1, 3, count)
+        s_v_out = (s_x_out - s_x) / dt if dynamic else torch.zeros_like(s_x_out)
+        return s_x_out, s_v_out
 
     # -- pieces of a step -------------------------------------------------------------------------------------
 
@@ -749,8 +881,21 @@ class SolverCloth:
             alpha = min(alpha, float(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta).min()))
         return alpha
 
-    def _potential(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext, hessian: bool):
-        """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (PSD-projected).
+    def _potential(
+        self,
+        X: torch.Tensor,
+        near: _Pairs,
+        ctx: _StepContext,
+        hessian: bool,
+        project: bool = True,
+        parts: dict[str, torch.Tensor] | None = None,
+    ):
+        """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians.
+
+        The element Hessians are PSD-projected unless ``project`` is False (friction's are PSD by construction).
+        ``parts``, when given, receives the gradient ``[V + B, 3]`` of each term that is present, by name:
+        ``"inertia"`` (``M (x − x̂)``, or ``−Δt² M g`` in a static solve), and, scaled by ``Δt²``, ``"membrane"``,
+        ``"bending"``, ``"contact"`` and ``"friction"``.
 
         Returns ``(energy, grad, elements)`` with ``elements`` a list of ``(vertex index [N, k], hess [N, 3k, 3k])``.
         """
@@ -762,20 +907,28 @@ class SolverCloth:
         free_mask = ~ctx.kinematic[:v]
         energy = torch.zeros((), dtype=F64, device=X.device)
 
-        def add(index: torch.Tensor, terms, scale: float) -> None:
+        def add(index: torch.Tensor, terms, scale: float, name: str) -> None:
             nonlocal energy
             energy = energy + scale * terms.energy.sum()
             grad.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
             if hessian:
                 elements.append((index, scale * terms.hess))
+            if parts is not None:
+                part = parts.setdefault(name, torch.zeros_like(X))
+                part.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
 
         if cfg.static:
             energy = energy - dt2 * (self.mass[:, None] * self.gravity * x).sum()
-            grad[:v] -= dt2 * self.mass[:, None] * self.gravity
+            inertia = -dt2 * self.mass[:, None] * self.gravity
         else:
             r = (x - ctx.x_hat) * free_mask[:, None]
             energy = energy + 0.5 * (self.mass[:, None] * r * r).sum()
-            grad[:v] += self.mass[:, None] * r
+            inertia = self.mass[:, None] * r
+        grad[:v] += inertia
+        if parts is not None:
+            parts["inertia"] = torch.zeros_like(X)
+            parts["inertia"][:v] = inertia
+        project = hessian and project
         e = self.energies
         add(
             self.faces.long(),
@@ -786,14 +939,16 @@ class SolverCloth:
                 self.rest.rest_area,
                 self.membrane_mu,
                 self.membrane_lambda,
-                project=hessian,
+                project=project,
             ),
             dt2,
+            "membrane",
         )
         add(
             self.hinges.long(),
-            e.bending(x, self.hinges, self.rest.rest_angle, self.rest.rest_weight, self.k_bend, project=hessian),
+            e.bending(x, self.hinges, self.rest.rest_angle, self.rest.rest_weight, self.k_bend, project=project),
             dt2,
+            "bending",
         )
         if near.pt.shape[0] or near.ee.shape[0]:
             eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
@@ -801,13 +956,14 @@ class SolverCloth:
             for index, terms in ((near.pt, pt), (near.ee, ee)):
                 active = terms.energy > 0.0
                 if bool(active.any()):
-                    hess = cloth.project_psd(terms.hess[active]) if hessian else terms.hess[active]
-                    add(index.long()[active], cloth.ElementTerms(terms.energy[active], terms.grad[active], hess), dt2)
+                    hess = cloth.project_psd(terms.hess[active]) if project else terms.hess[active]
+                    terms = cloth.ElementTerms(terms.energy[active], terms.grad[active], hess)
+                    add(index.long()[active], terms, dt2, "contact")
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
                 X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, hessian
             )
-            add(ctx.friction.index, cloth.ElementTerms(f_energy, f_grad, f_hess), dt2)
+            add(ctx.friction.index, cloth.ElementTerms(f_energy, f_grad, f_hess), dt2, "friction")
         return energy, grad, elements
 
     def _assemble(self, elements, grad: torch.Tensor, p_kin: torch.Tensor, ctx: _StepContext):
@@ -839,9 +995,11 @@ class SolverCloth:
         return torch.cat(rows), torch.cat(cols), torch.cat(blocks), rhs.reshape(-1)
 
     def _solve(self, rows, cols, blocks, rhs, n: int) -> torch.Tensor:
-        """Solve ``H p = rhs`` for the free DOFs (``H`` SPD, given as 3×3 COO blocks)."""
+        """Solve ``H p = rhs`` for the free DOFs (``H`` SPD as 3×3 COO blocks; ``rhs`` ``[3n]`` or ``[3n, P]``)."""
         if n == 0:
-            return rhs.new_zeros(0)
+            return rhs.new_zeros(rhs.shape)
+        if rhs.dim() == 2 and self.linear_solver != "direct":
+            return torch.stack([self._solve(rows, cols, blocks, rhs[:, j], n) for j in range(rhs.shape[1])], 1)
         i = torch.arange(3, device=rows.device)
         r = (3 * rows[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
         c = (3 * cols[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
@@ -902,6 +1060,22 @@ class SolverCloth:
             return math.sqrt(max(float(d.min()), 0.0)) if d.numel() else math.inf
 
         return smallest(body), smallest(own), contacts
+
+
+def _one_thread_on_cpu(function, *args):
+    """Run ``function(*args)`` with one torch thread on the CPU.
+
+    A step's tensors are small (thousands of rows): torch's intra-op threads cost more to wake than they save, and
+    on shared cores they wait on each other. One thread ran the 1k-vertex sheet step 5x faster.
+    """
+    if backend.torch_device().type != "cpu":
+        return function(*args)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return function(*args)
+    finally:
+        torch.set_num_threads(threads)
 
 
 class _StepContext(NamedTuple):
