@@ -297,7 +297,9 @@ class Lighting:
         norm = float(np.linalg.norm(direction)) if direction.shape == (3,) else 0.0
         if not (math.isfinite(norm) and norm > 0.0):
             raise ValueError(f"sun_direction must be 3 finite numbers, not all zero, got {self.sun_direction!r}")
-        object.__setattr__(self, "sun_direction", tuple(float(c) for c in direction / norm))
+        if abs(norm - 1.0) > 1e-12:  # normalising a unit vector again may move its last bit (equality after I/O)
+            direction = direction / norm
+        object.__setattr__(self, "sun_direction", tuple(float(c) for c in direction))
 
     def to_dict(self) -> dict:
         """``{"ambient": [3], "sun": [3], "sun_direction": [3]}`` (the ``lighting`` entry of ``transforms.json``)."""

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from kernels import backend
 from kernels.raycast import MeshBVH
 from physavatar.body import Body
 from physavatar.garment import boundary_targets
@@ -64,6 +65,9 @@ def chamfer_fscore(
         seed: sampling seed (the same points for every method compared).
     """
     truth_faces = faces if truth_faces is None else truth_faces
+    device = backend.torch_device()
+    prediction, truth = prediction.to(device), truth.to(device)
+    faces, truth_faces = faces.to(device), truth_faces.to(device)
     p_points = surface_samples(prediction, faces, samples, seed)
     g_points = surface_samples(truth, truth_faces, samples, seed + 1)
     d_pg = MeshBVH(truth.float(), truth_faces).closest(p_points.float()).distance.double()
@@ -118,7 +122,7 @@ def geometry_scores(
         c, f = chamfer_fscore(prediction[t], truth[t], faces, tau=tau, samples=samples, seed=t)
         chamfer.append(c)
         fscore.append(f)
-    error = torch.linalg.norm(prediction.double() - truth.double(), dim=2).mean(1)
+    error = torch.linalg.norm(prediction.double() - truth.double(), dim=2).mean(1).cpu()
     return GeometryScores(torch.tensor(chamfer), torch.tensor(fscore), error)
 
 

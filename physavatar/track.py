@@ -208,7 +208,7 @@ def _track(
     if faces.dim() != 2 or faces.shape[1] != 3 or int(faces.max()) >= v or int(faces.min()) < 0:
         raise ValueError(f"faces must be [F, 3] indices into the {v} garment vertices")
 
-    device = first_vertices.device
+    device = backend.torch_device()
     rig = capture.rig
     w2c = rig.world_to_camera().to(device)
     intrinsics = (rig.fx, rig.fy, rig.cx, rig.cy)

@@ -81,7 +81,7 @@ def test_estimate_removes_baked_shadows_and_relights(device):
     new_light = Lighting((0.25, 0.3, 0.35), (0.9, 0.8, 0.6), (-0.6, 1.0, -0.3))
     truth = relight(garment, faces, albedo, capture.rig, new_light, body, body_faces)
     relit = relight(garment, faces, estimate.albedo, capture.rig, new_light, body, body_faces)
-    scale = (albedo * estimate.initial_albedo).sum(0) / estimate.initial_albedo.square().sum(0)
+    scale = (albedo.cpu() * estimate.initial_albedo).sum(0) / estimate.initial_albedo.square().sum(0)
     baseline = relight(garment, faces, estimate.initial_albedo * scale, capture.rig, new_light, body, body_faces)
     assert relit.shape == truth.shape == (FRAMES, 4, 40, 48, 3)
     seen = _garment_pixels_of_faces(garment, faces, body, body_faces, capture.rig, estimate.observed)

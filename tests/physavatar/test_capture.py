@@ -87,7 +87,7 @@ def test_projection_of_a_pixels_first_hit_is_its_centre(device):
     for c in range(len(rig)):
         origins, directions = rig.rays(c)
         assert origins.shape == directions.shape == (rig.height * rig.width, 3)
-        torch.testing.assert_close(directions.norm(dim=1), torch.ones(len(directions)))
+        torch.testing.assert_close(directions.norm(dim=1).cpu(), torch.ones(len(directions)))
         hits = cast_rays(vertices[0].to(origins.device), faces.to(origins.device), origins, directions)
         hit = torch.nonzero(hits.face >= 0).flatten()
         assert len(hit) > 100
