@@ -103,7 +103,7 @@ class GarmentPixels:
 
 @dataclass
 class Appearance:
-    """An estimated appearance.
+    """An estimated appearance (tensors on the CPU).
 
     Attributes:
         albedo: ``[F, 3]`` float32 time-invariant per-face diffuse albedo (the texture ``T``), in the gauge
@@ -367,7 +367,7 @@ def estimate_appearance(
     albedo = torch.where(observed[:, None], albedo, initial.double() * ratio)
     ambient, sun = ambient.double().cpu() / scale.cpu(), sun.double().cpu() / scale.cpu()
     lighting = Lighting(ambient.tolist(), sun.tolist(), sun_direction if with_sun else (0.0, 1.0, 0.0))
-    return Appearance(albedo.float(), lighting, initial.float(), observed, history, len(pixels))
+    return Appearance(albedo.float().cpu(), lighting, initial.float().cpu(), observed.cpu(), history, len(pixels))
 
 
 def _alternating_least_squares(

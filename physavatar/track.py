@@ -52,8 +52,8 @@ class TrackConfig:
     """
 
     first_iterations: int = 200
-    iterations: int = 80
-    lr_vertices: float = 1e-3
+    iterations: int = 100
+    lr_vertices: float = 3e-3
     lr_colors: float = 0.02
     lr_scales: float = 0.01
     lr_opacity: float = 0.05

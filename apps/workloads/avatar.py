@@ -6,7 +6,7 @@ reference is the
 dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
 ``views × pixels × Gaussians`` tensor).
 
-``track_frame``: one frame of tracking (:func:`physavatar.track.track`'s per-frame optimisation: the default 80
+``track_frame``: one frame of tracking (:func:`physavatar.track.track`'s per-frame optimisation: the default 100
 Adam iterations of vertices and colours against 8 views at 256×256, smoke: 4 views at 64×64 and 10 iterations).
 
 ``estimate``: the analytic Levenberg–Marquardt fit of (κ_s, κ_b) to 24 exact frames of the skirt on the walking
@@ -99,7 +99,7 @@ def bench_track_frame(device: str, size: str) -> Case:
     from physavatar.track import TrackConfig, track
 
     views, pixels = (4, 64) if size == "smoke" else (8, 256)
-    iterations = 10 if size == "smoke" else 80
+    iterations = 10 if size == "smoke" else TrackConfig().iterations
     body, skirt = _dressed()
     clip = motion.walk(body.skeleton, fps=25.0)
     result = simulate(skirt, body, clip, config=SYNTHETIC_FABRIC, frames=2, progress=False)
