@@ -2,6 +2,7 @@
 
     python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|PATH] [--device cpu|cuda]
                         [--host 127.0.0.1] [--port 8080] [--viewer viser|meshcat] [--smoke]
+                        [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
 
 ``viser`` (default) serves a page: the deformed scene mesh (updated every frame), the particles and the
 integrator points as toggles, and a panel with the material (Young's modulus, Poisson ratio, density, model),
@@ -12,6 +13,19 @@ click moves the target onto that ray at the picked depth, and the gizmo at the t
 :class:`pienerf.picking.DragController` pulls the body. ``meshcat`` is display-only (meshcat cannot send input
 back): it streams the simulation under a scripted sweeping drag. ``--smoke`` starts the viewer, runs a few steps
 headless and exits 0.
+
+``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
+``particles`` are drawn by the browser; ``nerf`` is a NeRF of the scene warped by the body's deformation
+(quadratic ray warping, PIE-NeRF Eq. 19–21), rendered on the server from each client's camera and shown as the
+page's background image with its depth. While the body or the camera moves it is rendered at a quarter of the
+resolution, then once at full resolution when still. The NeRF is trained on the scene's own rendered views the
+first time, with progress in the terminal (or in the panel when switched on there; the simulation waits), and
+cached as a checkpoint under the scene cache (``--cache-dir``, default ``$PIE_CACHE_DIR`` or
+``~/.cache/pie-physavatar``), so later starts load it; ``--nerf-checkpoint`` loads a given one instead (trained in
+the scene's coordinates). The default stays ``mesh``: on this project's 2-core CPU the plant's NeRF (48 views of
+64², 1000 steps of 2048 rays; 27.4 dB on held-out views) took 91 s to fit, over the minute a start may take; a
+later start loads it in about a second. A 320 × 240 view then took 0.4 s to render and its 80 × 60 preview
+0.06–0.09 s. In NeRF mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 Viewer events become commands queued to the simulation loop, which runs them between steps; a command that fails
 (a malformed message, a bad value) is reported in the panel and the loop goes on, and a client that disconnects
@@ -35,6 +49,114 @@ import torch
 from kernels import backend
 
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
+
+RENDER_MODES = ("mesh", "particles", "nerf")
+"""What the viewer can show: the browser's mesh, the browser's particles, or the server's warped-NeRF image."""
+
+
+def _smoke_fit():
+    """A NeRF fit of a few seconds for ``--smoke`` (16 views of 32², 60 steps, a small hash grid)."""
+    from kernels.hashgrid import HashGridConfig
+    from pienerf.nerf import NGPConfig
+    from pienerf.nerf_backend import NerfFit
+    from pienerf.train import TrainConfig
+
+    ngp = NGPConfig(
+        hashgrid=HashGridConfig(levels=6, features=2, log2_table_size=12, base_resolution=8, max_resolution=64),
+        density_hidden=16,
+        color_hidden=16,
+        color_layers=1,
+        grid_resolution=32,
+        samples_per_diagonal=128,
+    )
+    return NerfFit(ngp=ngp, train=TrainConfig(steps=60, batch_rays=512, grid_warmup_steps=16), views=16, resolution=32)
+
+
+def load_nerf(simulation, checkpoint: str | None = None, fit=None, cache_dir: str | None = None, progress=None):
+    """Give ``simulation`` its ``"nerf"`` render mode: a given checkpoint, else the NeRF of its embedded scene
+    (trained on the scene's rendered views, or loaded from the cache); returns the render backend."""
+    from pienerf.nerf_backend import NerfFit, scene_nerf
+    from pienerf.scenes import SCENES
+    from pienerf.train import load_checkpoint
+
+    if "nerf" in simulation.render_backends:
+        return simulation.render_backends["nerf"]
+    if checkpoint is not None:
+        trained = load_checkpoint(checkpoint)
+    elif simulation.config.scene in SCENES:
+        trained = scene_nerf(simulation.config.scene, fit or NerfFit(), cache_dir, progress)
+    else:
+        raise ValueError(
+            f"no NeRF for the mesh scene {simulation.config.scene!r}: pass --nerf-checkpoint PATH "
+            "(trained in the mesh's coordinates) or use an embedded scene"
+        )
+    return simulation.add_nerf_render(trained.field, trained.grid)
+
+
+def viser_cameras(position, wxyz, fov: float, aspect: float, height: int):
+    """:class:`pienerf.data.Cameras` (one view, OpenGL axes) of a viser client's camera, ``height`` pixels high.
+
+    viser gives the camera-to-world rotation as a quaternion ``wxyz`` in OpenCV axes (x right, y down, looking
+    along +z), the position in metres and the vertical field of view ``fov`` in radians; ``aspect`` is width over
+    height.
+    """
+    from viser import transforms
+
+    from pienerf.data import Cameras
+
+    if not (height >= 1 and aspect > 0 and 0 < fov < math.pi):
+        raise ValueError(f"need height >= 1 px, aspect > 0 and 0 < fov < pi rad, got {height}, {aspect}, {fov}")
+    rotation = transforms.SO3(np.asarray(wxyz, dtype=np.float64)).as_matrix() @ np.diag([1.0, -1.0, -1.0])
+    c2w = np.eye(4)
+    c2w[:3, :3], c2w[:3, 3] = rotation, _vector(position, "camera position")
+    width = max(1, int(round(height * aspect)))
+    focal = torch.tensor([0.5 * height / math.tan(0.5 * fov)])
+    return Cameras(
+        torch.tensor(c2w, dtype=torch.float32)[None],
+        focal,
+        focal.clone(),
+        torch.tensor([0.5 * width]),
+        torch.tensor([0.5 * height]),
+        width,
+        height,
+    )
+
+
+class RefinementSchedule:
+    """The resolution a preview is rendered at: coarse while the body or the camera moves, full once still.
+
+    Args:
+        moving: downscale while things move.
+        still: downscale of the refined image.
+        tolerance: generalized coordinates that changed less than this (m) since the last render count as still.
+    """
+
+    def __init__(self, moving: int = 4, still: int = 1, tolerance: float = 1e-4):
+        self.moving, self.still, self.tolerance = moving, still, tolerance
+        self._q: torch.Tensor | None = None
+        self._camera = None
+        self._level: int | None = None
+
+    def next(self, q: torch.Tensor, camera) -> int | None:
+        """The downscale to render at now, or ``None`` when the shown image is already the refined one.
+
+        Args:
+            q: ``[nT, 3]`` the body's state.
+            camera: any comparable description of the view (changes when the camera moves).
+        """
+        moved = (
+            self._q is None
+            or self._q.shape != q.shape
+            or camera != self._camera
+            or float((q - self._q).abs().max()) > self.tolerance
+        )
+        if moved:
+            self._q, self._camera, self._level = q.detach().clone(), camera, self.moving
+            return self.moving
+        if self._level != self.still:
+            self._level = self.still
+            return self.still
+        return None
 
 
 def _vector(value, what: str) -> np.ndarray:
@@ -66,11 +188,18 @@ class DemoApp:
     Args:
         simulation: the :class:`pienerf.session.Simulation`.
         viewer: the display.
+        render_mode: one of :data:`RENDER_MODES`, shown first.
+        nerf_options: keyword arguments of :func:`load_nerf` (``checkpoint``, ``fit``, ``cache_dir``) used when the
+            NeRF mode is switched on later.
     """
 
-    def __init__(self, simulation, viewer: Viewer):
+    def __init__(self, simulation, viewer: Viewer, render_mode: str = "mesh", nerf_options: dict | None = None):
+        if render_mode not in RENDER_MODES:
+            raise ValueError(f"unknown render mode {render_mode!r}; valid: {', '.join(RENDER_MODES)}")
         self.simulation = simulation
         self.viewer = viewer
+        self.render_mode = render_mode
+        self.nerf_options = dict(nerf_options or {})
         self.commands: queue.Queue[tuple[str, Callable[[], object]]] = queue.Queue()
         self.stop = threading.Event()
         self.paused = False
@@ -131,9 +260,15 @@ class DemoApp:
 
 
 class ViserViewer:
-    """The browser viewer: a viser server with the scene, the controls panel and click-to-drag."""
+    """The browser viewer: a viser server with the scene, the controls panel and click-to-drag.
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8080):
+    Args:
+        host, port: where the page is served.
+        nerf_height: height in pixels of the NeRF images rendered for each client (width from its aspect).
+        background: colour behind the NeRF render, RGB in [0, 1].
+    """
+
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
         import viser
 
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -141,6 +276,11 @@ class ViserViewer:
         self.app: DemoApp | None = None
         self._gizmo = None
         self._gizmo_sync = False
+        self.nerf_height = int(nerf_height)
+        self.background = torch.tensor(background, dtype=torch.float32)
+        self._schedules: dict[int, RefinementSchedule] = {}
+        self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
+        self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -151,18 +291,29 @@ class ViserViewer:
         faces = sim.mesh_faces.numpy().astype(np.uint32)
         self._faces = faces
         self._colors = (sim.mesh_colors.numpy() * 255).astype(np.uint8)
-        self.mesh = server.scene.add_mesh_simple("/body", sim.deformed_mesh_vertices().numpy(), faces,
-                                                 color=(200, 170, 120))
+        self.mesh = server.scene.add_mesh_simple(
+            "/body", sim.deformed_mesh_vertices().numpy(), faces, color=(200, 170, 120)
+        )
         self.particles = server.scene.add_point_cloud(
-            "/particles", sim.particle_positions().numpy(), (sim.particle_colors.numpy() * 255).astype(np.uint8),
-            point_size=0.6 * sim.particle_radius, visible=False)
-        self.ips = server.scene.add_point_cloud("/integrator_points", sim.integrator_positions().numpy(),
-                                                (230, 40, 40), point_size=1.2 * sim.particle_radius, visible=False)
-        server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
+            "/particles",
+            sim.particle_positions().numpy(),
+            (sim.particle_colors.numpy() * 255).astype(np.uint8),
+            point_size=0.6 * sim.particle_radius,
+            visible=False,
+        )
+        self.ips = server.scene.add_point_cloud(
+            "/integrator_points",
+            sim.integrator_positions().numpy(),
+            (230, 40, 40),
+            point_size=1.2 * sim.particle_radius,
+            visible=False,
+        )
+        self.ground = server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
         self._build_gui(app)
         server.scene.on_click()(self._on_click)
         self.mesh.on_drag("left")(self._on_drag)
         server.on_client_connect(self._on_connect)
+        self._show(app.render_mode)
 
     def _build_gui(self, app: DemoApp) -> None:
         gui, sim = self.server.gui, app.simulation
@@ -171,8 +322,9 @@ class ViserViewer:
             self.young = gui.add_slider("Young's modulus log10(Pa)", 3.0, 7.0, 0.1, math.log10(material.young_modulus))
             self.poisson = gui.add_slider("Poisson ratio", 0.0, 0.49, 0.01, material.poisson_ratio)
             self.density = gui.add_slider("density (kg/m³)", 100.0, 3000.0, 50.0, material.density)
-            self.model = gui.add_dropdown("model", ("neo_hookean", "arap", "stvk", "fixed_corotated"),
-                                          initial_value=material.model)
+            self.model = gui.add_dropdown(
+                "model", ("neo_hookean", "arap", "stvk", "fixed_corotated"), initial_value=material.model
+            )
             self.damping = gui.add_slider("damping α (1/s)", 0.0, 20.0, 0.5, sim.config.rayleigh_alpha)
             self.gravity = gui.add_slider("gravity (m/s²)", 0.0, 20.0, 0.1, -sim.config.gravity[1])
         with gui.add_folder("Discretisation"):
@@ -186,6 +338,7 @@ class ViserViewer:
             self.cut = gui.add_button("cut through picked point")
             self.reset = gui.add_button("reset")
         with gui.add_folder("View"):
+            self.render_mode = gui.add_dropdown("render", RENDER_MODES, initial_value=app.render_mode)
             self.show_mesh = gui.add_checkbox("mesh", True)
             self.show_particles = gui.add_checkbox("particles", False)
             self.show_ips = gui.add_checkbox("kernels and integrator points", False)
@@ -193,9 +346,14 @@ class ViserViewer:
         self.message = gui.add_markdown("click the body to pick, click again to drag")
 
         def material_changed(_event) -> None:
-            values = dict(young_modulus=10.0 ** self.young.value, poisson_ratio=self.poisson.value,
-                          density=self.density.value, model=self.model.value, damping=self.damping.value,
-                          gravity=(0.0, -self.gravity.value, 0.0))
+            values = dict(
+                young_modulus=10.0**self.young.value,
+                poisson_ratio=self.poisson.value,
+                density=self.density.value,
+                model=self.model.value,
+                damping=self.damping.value,
+                gravity=(0.0, -self.gravity.value, 0.0),
+            )
             app.submit("material change", lambda: sim.set_material(**values))
 
         for handle in (self.young, self.poisson, self.density, self.model, self.damping, self.gravity):
@@ -209,6 +367,9 @@ class ViserViewer:
         self.show_mesh.on_update(lambda _e: setattr(self.mesh, "visible", self.show_mesh.value))
         self.show_particles.on_update(lambda _e: setattr(self.particles, "visible", self.show_particles.value))
         self.show_ips.on_update(lambda _e: setattr(self.ips, "visible", self.show_ips.value))
+        self.render_mode.on_update(
+            lambda _e: app.submit("render mode", lambda mode=self.render_mode.value: self._set_render_mode(mode))
+        )
 
     # -- events ----------------------------------------------------------------------------------
 
@@ -242,6 +403,71 @@ class ViserViewer:
         client.camera.up_direction = (0.0, 1.0, 0.0)
         client.camera.position = centre + np.array([0.0, 0.3, 2.6])
         client.camera.look_at = centre
+
+    def _set_render_mode(self, mode: str) -> None:
+        """Switch what the page shows; the NeRF is loaded (or trained, with progress in the panel) the first time."""
+        app = self.app
+        if mode == "nerf" and "nerf" not in app.simulation.render_backends:
+            self.progress.visible = True
+
+            def progress(stage: str, fraction: float) -> None:
+                self.progress.value = 100.0 * fraction
+                self.report(stage)
+
+            try:
+                load_nerf(app.simulation, progress=progress, **app.nerf_options)
+            except Exception:
+                self.render_mode.value = app.render_mode  # stay in the mode shown
+                raise
+            finally:
+                self.progress.visible = False
+        app.render_mode = mode
+        self._show(mode)
+        self.report(f"showing the {mode}")
+
+    def _show(self, mode: str) -> None:
+        """Scene nodes of a render mode: the browser's mesh or particles, or the server's NeRF image."""
+        self.show_mesh.value = mode == "mesh"
+        self.show_particles.value = mode == "particles"
+        self.mesh.visible, self.particles.visible = mode == "mesh", mode == "particles"
+        self.ground.visible = mode != "nerf"  # the NeRF image has its own ground and shadow
+        if mode != "nerf":
+            self.server.scene.set_background_image(None)
+        self._schedules.clear()
+
+    def _update_nerf(self, sim) -> None:
+        """Render the warped NeRF from every client's camera: coarse while things move, refined when still."""
+        renderer = sim.render_backends["nerf"]
+        for client_id, client in self.server.get_clients().items():
+            camera = client.camera
+            try:
+                view = (
+                    tuple(np.round(camera.position, 5)),
+                    tuple(np.round(camera.wxyz, 5)),
+                    round(camera.fov, 5),
+                    round(camera.aspect, 4),
+                )
+            except AssertionError:  # the client has not sent its camera yet
+                continue
+            level = self._schedules.setdefault(client_id, RefinementSchedule()).next(sim.state.q, view)
+            if level is None:
+                continue
+            renderer.downscale = level
+            cameras = viser_cameras(camera.position, camera.wxyz, camera.fov, camera.aspect, self.nerf_height)
+            frame = sim.render(cameras, 0, "nerf")
+            alpha = frame.rgba[..., 3:]
+            rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
+            # viser composites with the depth along the optical axis: the ray length times cos(off-axis angle).
+            rows, cols = torch.meshgrid(
+                torch.arange(cameras.height) + 0.5, torch.arange(cameras.width) + 0.5, indexing="ij"
+            )
+            slope = torch.stack([(cols - cameras.cx[0]) / cameras.fx[0], (rows - cameras.cy[0]) / cameras.fy[0]])
+            z = frame.depth.cpu() / torch.sqrt(1.0 + (slope**2).sum(0))
+            z = torch.where(torch.isfinite(z), z, 100.0)
+            image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()
+            client.scene.set_background_image(image, format="jpeg", depth=z.numpy())
+            self.nerf_renders.append(level)
+            self.last_nerf_image = image
 
     def _resample(self, kernel_count: int) -> None:
         self.progress.visible = True
@@ -277,8 +503,9 @@ class ViserViewer:
             return
         target = drag.target.numpy()
         if self._gizmo is None:
-            self._gizmo = self.server.scene.add_transform_controls("/drag_target", scale=0.2, disable_rotations=True,
-                                                                   position=target)
+            self._gizmo = self.server.scene.add_transform_controls(
+                "/drag_target", scale=0.2, disable_rotations=True, position=target
+            )
 
             def moved(_event, gizmo=self._gizmo) -> None:
                 position = np.asarray(gizmo.position, dtype=np.float64)
@@ -292,6 +519,8 @@ class ViserViewer:
 
     def update(self, app: DemoApp) -> None:
         sim = app.simulation
+        if app.render_mode == "nerf" and "nerf" in sim.render_backends:
+            self._update_nerf(sim)
         with self.server.atomic():
             if self.mesh.visible:
                 self.mesh.vertices = sim.deformed_mesh_vertices().numpy()
@@ -351,46 +580,118 @@ def sweeping_drag(simulation, amplitude: float = 0.15, period: float = 2.0) -> C
     rest = position[top].double().cpu()
 
     def target(t: float) -> torch.Tensor:
-        return rest + torch.tensor([amplitude * math.sin(2.0 * math.pi * t / period), 0.0, 0.0],
-                                   dtype=torch.float64)
+        return rest + torch.tensor([amplitude * math.sin(2.0 * math.pi * t / period), 0.0, 0.0], dtype=torch.float64)
 
     return target
 
 
-def build_app(scene: str, viewer_name: str, host: str, port: int, smoke: bool) -> DemoApp:
-    """The simulation of ``scene`` behind the chosen viewer."""
+def build_app(
+    scene: str,
+    viewer_name: str,
+    host: str,
+    port: int,
+    smoke: bool,
+    render: str = "mesh",
+    nerf_checkpoint: str | None = None,
+    cache_dir: str | None = None,
+    progress=None,
+) -> DemoApp:
+    """The simulation of ``scene`` behind the chosen viewer, showing ``render`` (:data:`RENDER_MODES`).
+
+    With ``render="nerf"`` the NeRF is loaded from ``nerf_checkpoint`` or fitted to the scene (a few-second fit
+    with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up.
+    """
     from pienerf.session import Simulation, SimulationConfig
 
-    simulation = Simulation(SimulationConfig(scene=scene, **(SMOKE if smoke else {})))
+    if render not in RENDER_MODES:
+        raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
+    if viewer_name != "viser" and render != "mesh":
+        raise ValueError(f"--render {render} needs the viser viewer; meshcat shows the mesh only")
+    simulation = Simulation(SimulationConfig(scene=scene, **(SMOKE if smoke else {})), progress)
+    nerf_options = {"checkpoint": nerf_checkpoint, "fit": _smoke_fit() if smoke else None, "cache_dir": cache_dir}
+    if render == "nerf":
+        load_nerf(simulation, progress=progress, **nerf_options)
     if viewer_name == "viser":
         viewer = ViserViewer(host, port)
-        app = DemoApp(simulation, viewer)
+        app = DemoApp(simulation, viewer, render, nerf_options)
     else:
         viewer = MeshcatViewer()
-        app = DemoApp(simulation, viewer)
+        app = DemoApp(simulation, viewer, render, nerf_options)
         app.scripted_drag = sweeping_drag(simulation)
     return app
 
 
+class _TerminalProgress:
+    """A rich progress bar for the start-up, called as ``progress(stage, fraction)``."""
+
+    def __enter__(self):
+        from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
+
+        self.bar = Progress(
+            BarColumn(), TaskProgressColumn(), TimeElapsedColumn(), TextColumn("{task.description}"), transient=True
+        )
+        self.task = self.bar.add_task("starting", total=1.0)
+        self.bar.start()
+        return self
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        self.bar.update(self.task, completed=fraction, description=stage)
+
+    def __exit__(self, *exc) -> None:
+        self.bar.stop()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--scene", default="plant", help="plant, teapot, jelly, cloth, sculpture or a mesh path")
+    parser.add_argument(
+        "--scene",
+        default="plant",
+        help="plant, teapot, jelly, cloth, sculpture, a mesh path or a NeRF checkpoint (.pt)",
+    )
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8080)
     parser.add_argument("--viewer", choices=("viser", "meshcat"), default="viser")
     parser.add_argument("--smoke", action="store_true", help="start, run a few steps headless, exit")
+    parser.add_argument(
+        "--render",
+        choices=RENDER_MODES,
+        default="mesh",
+        help="what the page shows first (the panel switches it): browser mesh, particles, or the "
+        "server's warped-NeRF image (trains the scene's NeRF on first use)",
+    )
+    parser.add_argument("--nerf-checkpoint", default=None, help="a trained NeRF checkpoint to render instead")
+    parser.add_argument("--cache-dir", default=None, help="cache of scene renders and NeRF checkpoints")
     args = parser.parse_args(argv)
     backend.init(args.device)
     try:
-        app = build_app(args.scene, args.viewer, args.host, args.port, args.smoke)
-    except ValueError as error:
+        with _TerminalProgress() as progress:
+            app = build_app(
+                args.scene,
+                args.viewer,
+                args.host,
+                args.port,
+                args.smoke,
+                args.render,
+                args.nerf_checkpoint,
+                args.cache_dir,
+                progress,
+            )
+    except (ValueError, FileNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     if args.smoke:
         app.run(steps=3)
         app.viewer.close()
         print(f"smoke: 3 steps of {args.scene}, t = {app.simulation.time:.3f} s")
+        if args.render != "mesh":
+            from pienerf.session import orbit_cameras
+
+            sim = app.simulation
+            cameras = orbit_cameras(sim.centre, 2.6, [30.0], 15.0, 64, 48)
+            frame = sim.render(cameras, 0, "nerf" if args.render == "nerf" else "particles")
+            coverage = float((frame.rgba[..., 3] > 0.5).float().mean())
+            print(f"smoke: {args.render} frame 64x48, {100 * coverage:.0f} % covered")
         return 0
     url = getattr(app.viewer, "url", None) or f"http://{args.host}:{app.viewer.port}"
     print(f"viewer at {url}; Ctrl+C stops")

@@ -350,6 +350,7 @@ class DeformedRenderer:
         resolution: int | None = None,
         background=(1.0, 1.0, 1.0),
         ground: GroundPlane | None = None,
+        frame: DeformedFrame | None = None,
     ) -> dict[str, torch.Tensor]:
         """Render the body deformed by q (Eq. 19–21), optionally over a shadowed ground (Fig. 7).
 
@@ -362,12 +363,14 @@ class DeformedRenderer:
                 :func:`pienerf.nerf.render_rays`).
             background: ``[3]`` colour behind everything.
             ground: a lit ground plane that receives the object's shadow.
+            frame: :meth:`frame` of this very q, to reuse (e.g. for several views of one state); ``None`` builds it.
 
         Returns:
             ``rgb`` (``[H, W, 3]`` for cameras, ``[R, 3]`` for rays; object over ground over background),
             ``alpha`` (object opacity), ``depth`` (object's expected depth, metres, 0 where empty); with a
             ground also ``ground_transmittance`` (light reaching the ground seen in each pixel, 1 off the
-            ground) and ``shadow_map`` ``[M, M]`` (transmittance to the light over the ground square).
+            ground), ``on_ground`` (bool: the ray meets the ground square behind the object) and ``shadow_map``
+            ``[M, M]`` (transmittance to the light over the ground square).
         """
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}; valid modes: {', '.join(MODES)}")
@@ -376,7 +379,8 @@ class DeformedRenderer:
         background = torch.as_tensor(background, dtype=torch.float32, device=device)
         if background.shape != (3,):
             raise ValueError(f"background must be an RGB triple, got shape {tuple(background.shape)}")
-        frame = None if mode == "rest" and ground is None else self.frame(self._check_q(q))
+        if frame is None and not (mode == "rest" and ground is None):
+            frame = self.frame(self._check_q(q))
         if mode == "rest" and ground is None:
             out = render_rays(self.field, self.grid, origins, directions, background=background, chunk=self.chunk)
             result = {"rgb": out["rgb"], "alpha": out["opacity"], "depth": out["depth"]}
@@ -394,6 +398,7 @@ class DeformedRenderer:
                                                                  ground)
                 behind = torch.where(shaded.isnan(), behind, shaded)
                 result["ground_transmittance"] = transmittance
+                result["on_ground"] = ~shaded[:, 0].isnan()
                 result["shadow_map"] = shadow_map
             result["rgb"] = color + (1.0 - opacity)[:, None] * behind
         if image_shape is not None:

@@ -10,8 +10,15 @@ Previews come from render backends behind one small interface, :class:`RenderBac
   BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`).
 * ``"particles"``: the deformed particles splatted as discs with the colour of the nearest mesh vertex.
 
-A warped-NeRF renderer (quadratic or linear ray warping, Eq. 19–21) plugs in through
-:meth:`Simulation.set_render_backend` under its own mode name.
+* ``"nerf"``: a NeRF of the scene rendered by quadratic (or linear) ray warping, Eq. 19–21
+  (:class:`pienerf.nerf_backend.NerfRenderBackend`), added by :meth:`Simulation.add_nerf_render` from a trained
+  field, e.g. :func:`pienerf.nerf_backend.scene_nerf` of an embedded scene.
+
+A scene may also be a trained NeRF checkpoint (``scene="path/to/ngp.pt"``, :func:`pienerf.train.save_checkpoint`):
+the body is then sampled from the NeRF's solid (:class:`pienerf.nerf_backend.NerfSceneDensity`), picking and the
+mesh preview use a blocky surface extracted from it (:func:`pienerf.nerf_backend.nerf_proxy_mesh`), and the
+``"nerf"`` mode is there from the start. Backends that hold the discretised body (a ``rebind(model)`` method) follow
+it through re-sampling and cuts.
 """
 
 from __future__ import annotations
@@ -108,6 +115,9 @@ class SimulationConfig:
         max_acceleration: a_max of the drag (m/s²).
         pin_stiffness: stiffness of each pin spring (N/m); ``None`` → Young's modulus × r̄ × 20.
         seed: seed of the particle sampling.
+        cuts: planes the body is cut along (rest space).
+        nerf_solid_resolution: for a NeRF checkpoint scene, cells along the longest edge of the grid on which its
+            solid and proxy mesh are found (:class:`pienerf.nerf_backend.NerfSceneDensity`).
     """
 
     scene: str = "plant"
@@ -130,6 +140,7 @@ class SimulationConfig:
     pin_stiffness: float | None = None
     seed: int = 0
     cuts: tuple[CutPlane, ...] = field(default_factory=tuple)
+    nerf_solid_resolution: int = 96
 
     def __post_init__(self):
         if not (self.dt > 0 and math.isfinite(self.dt)):
@@ -137,7 +148,10 @@ class SimulationConfig:
         if self.particle_radius is not None and not (0 < self.particle_radius < math.inf):
             raise ValueError(f"particle_radius must be a positive length in metres, got {self.particle_radius!r}")
         if self.scene not in SCENES and not Path(self.scene).is_file():
-            raise ValueError(f"unknown scene {self.scene!r}: use one of {', '.join(SCENES)} or a mesh file path")
+            raise ValueError(
+                f"unknown scene {self.scene!r}: use one of {', '.join(SCENES)}, a mesh file path or a "
+                "trained NeRF checkpoint (.pt)"
+            )
 
 
 class Frame(NamedTuple):
@@ -160,8 +174,9 @@ class RenderBackend(Protocol):
     def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame: ...
 
 
-def orbit_cameras(centre, distance: float, azimuths_deg, elevation_deg: float, width: int, height: int,
-                  fov_deg: float = 40.0) -> Cameras:
+def orbit_cameras(
+    centre, distance: float, azimuths_deg, elevation_deg: float, width: int, height: int, fov_deg: float = 40.0
+) -> Cameras:
     """Pinhole cameras on a circle about ``centre [3]`` (m), y up, all looking at the centre.
 
     Args:
@@ -202,8 +217,9 @@ def look_at_cameras(positions, targets, width: int, height: int, fov_deg: float 
     focal = 0.5 * height / math.tan(0.5 * math.radians(fov_deg))
     n = len(positions)
     f = torch.full((n,), focal, dtype=torch.float32)
-    return Cameras(c2w.float(), f, f.clone(), torch.full((n,), 0.5 * width), torch.full((n,), 0.5 * height),
-                   width, height)
+    return Cameras(
+        c2w.float(), f, f.clone(), torch.full((n,), 0.5 * width), torch.full((n,), 0.5 * height), width, height
+    )
 
 
 class MeshRenderBackend:
@@ -218,8 +234,15 @@ class MeshRenderBackend:
         ground_color: albedo of the ground.
     """
 
-    def __init__(self, model: QGMLSModel, vertices: torch.Tensor, faces: torch.Tensor, colors: torch.Tensor,
-                 ground_height: float | None = 0.0, ground_color=(0.82, 0.82, 0.8)):
+    def __init__(
+        self,
+        model: QGMLSModel,
+        vertices: torch.Tensor,
+        faces: torch.Tensor,
+        colors: torch.Tensor,
+        ground_height: float | None = 0.0,
+        ground_color=(0.82, 0.82, 0.8),
+    ):
         device = backend.torch_device()
         self.handle = model.handle(vertices)
         self.body_vertices = vertices.shape[0]
@@ -228,8 +251,9 @@ class MeshRenderBackend:
             lo, hi = vertices.amin(0), vertices.amax(0)
             centre, half = 0.5 * (lo + hi), 4.0 * float((hi - lo).max())
             corners = torch.tensor([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=torch.float32) * half
-            ground = torch.stack([corners[:, 0] + centre[0], torch.full((4,), float(ground_height)),
-                                  corners[:, 1] + centre[2]], dim=1)
+            ground = torch.stack(
+                [corners[:, 0] + centre[0], torch.full((4,), float(ground_height)), corners[:, 1] + centre[2]], dim=1
+            )
             base = vertices.shape[0]
             faces = torch.cat([faces, torch.tensor([[0, 2, 1], [0, 3, 2]]) + base])
             vertices = torch.cat([vertices, ground])
@@ -320,8 +344,10 @@ def project_state(source: QGMLSModel, target: QGMLSModel, state: StateQGMLS) -> 
     rows = torch.zeros(target.position.shape[0], target.shape_count, dtype=torch.float64, device=target.device)
     rows.scatter_add_(1, target.particles.index, target.particles.value)
     weight = target.volume.sqrt()[:, None]
-    moved = [source.particles.positions(state.q) - source.position, source.particles.positions(state.qd)
-             - source.position]
+    moved = [
+        source.particles.positions(state.q) - source.position,
+        source.particles.positions(state.qd) - source.position,
+    ]
     solution = torch.linalg.lstsq(weight * rows, torch.cat([weight * m for m in moved], dim=1)).solution
     return StateQGMLS(solution[:, :3].contiguous(), solution[:, 3:].contiguous(), state.time)
 
@@ -347,8 +373,10 @@ class Simulation:
         self.last_report = StepReport()
         self.particle_radius = config.particle_radius or setup.particle_radius or self._extent / 40.0
         self.discretization = DiscretizationConfig(
-            kernel_count=config.kernel_count or setup.kernel_count, order=config.order,
-            kernel_lloyd_iterations=config.lloyd_iterations, ip_lloyd_iterations=config.lloyd_iterations,
+            kernel_count=config.kernel_count or setup.kernel_count,
+            order=config.order,
+            kernel_lloyd_iterations=config.lloyd_iterations,
+            ip_lloyd_iterations=config.lloyd_iterations,
             cuts=tuple(config.cuts),
         )
         self._progress(progress, "sampling particles", 0.1)
@@ -365,7 +393,15 @@ class Simulation:
 
     def _load_scene(self) -> None:
         name = self.config.scene
-        if name in SCENES:
+        self.nerf = None
+        if name not in SCENES and Path(name).suffix == ".pt":
+            from pienerf.nerf_backend import NerfSceneDensity, nerf_proxy_mesh
+            from pienerf.train import load_checkpoint
+
+            self.nerf = load_checkpoint(name)
+            self.density = NerfSceneDensity(self.nerf.field, self.nerf.grid, self.config.nerf_solid_resolution)
+            self.mesh_vertices, self.mesh_faces, self.mesh_colors = nerf_proxy_mesh(self.density)
+        elif name in SCENES:
             mesh = scene_mesh(name)
             self.mesh_vertices, self.mesh_faces, self.mesh_colors = mesh.vertices, mesh.faces, mesh.colors
             self.density = scene_density(name)
@@ -390,14 +426,24 @@ class Simulation:
     def _build(self, progress: Progress | None) -> None:
         self._progress(progress, "placing kernels and integrator points", 0.4)
         device = backend.torch_device()
-        self.model = QGMLSModel(self.particles.position.to(device), self.particles.volume.to(device),
-                                self.discretization, device=device)
+        self.model = QGMLSModel(
+            self.particles.position.to(device), self.particles.volume.to(device), self.discretization, device=device
+        )
         self._progress(progress, "building the solver", 0.8)
         self._make_solver()
-        self.render_backends = {name: b for name, b in self.render_backends.items()
-                                if not isinstance(b, (MeshRenderBackend, ParticleRenderBackend))}
-        self._mesh_backend = MeshRenderBackend(self.model, self.mesh_vertices, self.mesh_faces, self.mesh_colors,
-                                               0.0 if self.config.floor else None)
+        self.render_backends = {
+            name: b
+            for name, b in self.render_backends.items()
+            if not isinstance(b, (MeshRenderBackend, ParticleRenderBackend))
+        }
+        for renderer in self.render_backends.values():
+            if hasattr(renderer, "rebind"):
+                renderer.rebind(self.model)
+        if self.nerf is not None and "nerf" not in self.render_backends:
+            self.add_nerf_render(self.nerf.field, self.nerf.grid)
+        self._mesh_backend = MeshRenderBackend(
+            self.model, self.mesh_vertices, self.mesh_faces, self.mesh_colors, 0.0 if self.config.floor else None
+        )
         self.render_backends["mesh"] = self._mesh_backend
         self.particle_colors = self._nearest_vertex_colors(self.particles.position.cpu())
         self.render_backends["particles"] = ParticleRenderBackend(self.model, self.particle_colors)
@@ -421,8 +467,12 @@ class Simulation:
 
     def _make_solver(self) -> None:
         config = self.config
-        solver_config = SolverConfig(gravity=tuple(config.gravity), rayleigh_alpha=config.rayleigh_alpha,
-                                     rayleigh_beta=config.rayleigh_beta, newton_iterations=config.newton_iterations)
+        solver_config = SolverConfig(
+            gravity=tuple(config.gravity),
+            rayleigh_alpha=config.rayleigh_alpha,
+            rayleigh_beta=config.rayleigh_beta,
+            newton_iterations=config.newton_iterations,
+        )
         self.solver = SolverQGMLS(self.model, self.material, solver_config)
 
     def _nearest_vertex_colors(self, points: torch.Tensor) -> torch.Tensor:
@@ -459,13 +509,22 @@ class Simulation:
         """Simulated time (s)."""
         return self.state.time
 
-    def set_material(self, young_modulus=None, poisson_ratio=None, density=None, model=None, damping=None,
-                     gravity=None) -> Material:
+    def set_material(
+        self, young_modulus=None, poisson_ratio=None, density=None, model=None, damping=None, gravity=None
+    ) -> Material:
         """Change material (E Pa, ν, ρ kg/m³, model name), Rayleigh α (1/s) or gravity (m/s², a 3-vector)."""
         if model is not None and model not in MATERIAL_MODELS:
             raise ValueError(f"unknown material model {model!r}; valid: {', '.join(MATERIAL_MODELS)}")
-        changes = {k: v for k, v in (("young_modulus", young_modulus), ("poisson_ratio", poisson_ratio),
-                                     ("density", density), ("model", model)) if v is not None}
+        changes = {
+            k: v
+            for k, v in (
+                ("young_modulus", young_modulus),
+                ("poisson_ratio", poisson_ratio),
+                ("density", density),
+                ("model", model),
+            )
+            if v is not None
+        }
         material = replace(self.material, **changes)
         config_changes = {}
         if damping is not None:
@@ -486,8 +545,7 @@ class Simulation:
 
     def resample(self, kernel_count: int, progress: Progress | None = None) -> None:
         """Re-discretise with ``kernel_count`` kernels, carrying the current state over (:func:`project_state`)."""
-        self.discretization = replace(self.discretization, kernel_count=int(kernel_count),
-                                      ip_count=None)
+        self.discretization = replace(self.discretization, kernel_count=int(kernel_count), ip_count=None)
         self._rebuild(progress)
 
     def cut(self, plane: CutPlane, progress: Progress | None = None) -> None:
@@ -526,6 +584,40 @@ class Simulation:
         """Add a render mode (e.g. a warped-NeRF renderer) beside ``"mesh"`` and ``"particles"``."""
         self.render_backends[mode] = renderer
 
+    def add_nerf_render(
+        self,
+        field,
+        grid,
+        name: str = "nerf",
+        warp: str = "quadratic",
+        downscale: int = 1,
+        ground: bool | None = None,
+        shadow_resolution: int = 64,
+    ):
+        """Add a warped-NeRF render mode (:class:`pienerf.nerf_backend.NerfRenderBackend`) of a trained field.
+
+        Args:
+            field, grid: the rest-space NeRF (:class:`pienerf.nerf.NGPField`) and its occupancy grid, in this
+                scene's coordinates (metres, y up).
+            name: the mode's name in :attr:`render_backends`.
+            warp: ``"quadratic"`` (Eq. 20), ``"linear"`` or ``"rest"``.
+            downscale: rendered pixels are blocks of this many camera pixels per side (the viewer changes it).
+            ground: render the floor with the body's shadow (default: when the floor collider is on).
+            shadow_resolution: texels per side of the ground's shadow map.
+
+        Returns:
+            The backend (its ``downscale`` and ``mode`` may be changed later).
+        """
+        from pienerf.nerf_backend import NerfRenderBackend
+        from pienerf.render import GroundPlane
+
+        plane = None
+        if self.config.floor if ground is None else ground:
+            plane = GroundPlane(height=0.0, extent=max(1.5, 2.0 * self._extent), shadow_resolution=shadow_resolution)
+        renderer = NerfRenderBackend(field, grid, self.model, mode=warp, downscale=downscale, ground=plane)
+        self.set_render_backend(name, renderer)
+        return renderer
+
     def render(self, cameras: Cameras, view: int = 0, mode: str = "mesh", shadow: bool = False) -> Frame:
         """Render the current state in ``mode``; the time goes to the breakdown under ``"render (mode)"``."""
         if mode not in self.render_backends:
@@ -558,5 +650,9 @@ class Simulation:
 
     def summary(self) -> dict:
         """Scene, material and discretisation sizes."""
-        return {"scene": self.config.scene, "material": asdict(self.material),
-                "particle_radius_m": self.particle_radius, **self.model.summary()}
+        return {
+            "scene": self.config.scene,
+            "material": asdict(self.material),
+            "particle_radius_m": self.particle_radius,
+            **self.model.summary(),
+        }

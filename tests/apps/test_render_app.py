@@ -1,4 +1,5 @@
-"""apps.render: every scenario of assets/scenarios renders at --smoke size and writes its outputs."""
+"""apps.render: every scenario of assets/scenarios renders at --smoke size and writes its outputs; the NeRF
+scenarios (the lego, Fig. 8) fit their NeRF into the test's cache and render it warped."""
 
 from __future__ import annotations
 
@@ -14,24 +15,44 @@ SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios"
 
 def test_the_paper_figures_have_scenarios():
     names = {path.stem for path in SCENARIOS}
-    assert {"plant_sway", "lego", "jelly_compression", "sculpture_cut", "teapot_rod", "cloth_sphere",
-            "time_breakdown"} <= names
+    assert {
+        "plant_sway",
+        "lego",
+        "jelly_compression",
+        "sculpture_cut",
+        "teapot_rod",
+        "cloth_sphere",
+        "time_breakdown",
+    } <= names
+
+
+def _run(scenario: Path, out: Path, device: str) -> dict:
+    cache = out.parent / "cache"
+    args = [str(scenario), "--out", str(out), "--smoke", "--device", device, "--cache-dir", str(cache)]
+    assert render.main(args) == 0
+    return json.loads((out / "metrics.json").read_text())
 
 
 @pytest.mark.parametrize("scenario", SCENARIOS, ids=lambda path: path.stem)
 def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
     out = tmp_path / scenario.stem
-    assert render.main([str(scenario), "--out", str(out), "--smoke", "--device", device]) == 0
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = _run(scenario, out, device)
     if "skipped" in metrics:
-        assert scenario.stem == "lego"
-        assert "pienerf.render" in metrics["skipped"] or "absent" in metrics["skipped"]
+        assert scenario.stem == "lego" and not (render.SHARED_DATA / "nerf_synthetic_lego").is_dir()
+        assert "nerf_synthetic_lego is absent" in metrics["skipped"]
         return
     spec = render.load_scenario(scenario, smoke=True)
     frames = spec["solver"]["frames"] + 1
     outputs = {"frames": True, "mp4": True, "depth": False, "shadow": False, **spec.get("outputs", {})}
     assert metrics["frames"] == frames and (out / "time_breakdown.png").is_file()
     variants = max(len(spec.get("variants", [])), 1)
+    tiles = sum(len(v.get("modes", outputs.get("modes", ["mesh"]))) for v in spec.get("variants", [{}]))
+    if outputs["frames"]:
+        from PIL import Image
+
+        with Image.open(out / "frames" / "frame_0000.png") as first:
+            views = len(spec["cameras"].get("positions", spec["cameras"].get("azimuths", [0.0])))
+            assert first.size == (spec["cameras"]["width"] * tiles * views, spec["cameras"]["height"])
     breakdown = metrics["time_breakdown"]
     assert breakdown["steps"] == (frames - 1) * variants and breakdown["newton_iterations"] > 0
     if outputs["frames"]:
@@ -49,6 +70,8 @@ def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
         assert (out / "volume_bars.png").is_file()
     for variant in metrics["variants"].values():
         assert 0.5 < variant["final_relative_volume"] < 1.5
+    if "nerf" in spec:
+        _check_nerf_outputs(scenario.stem, out, metrics, tmp_path / "cache")
 
 
 def test_bad_scenarios_fail_with_one_line_naming_the_key(device, tmp_path, capsys):
@@ -63,3 +86,35 @@ def test_bad_scenarios_fail_with_one_line_naming_the_key(device, tmp_path, capsy
     bad.write_text('[scene]\nname = "jelly"\n')
     assert render.main([str(bad), "--out", str(tmp_path / "out")]) == 2
     assert "missing table [cameras]" in capsys.readouterr().err
+
+
+def _check_nerf_outputs(name: str, out: Path, metrics: dict, cache: Path) -> None:
+    """Fig. 8 tiles the mesh and the NeRF warped quadratically and linearly; the lego is simulated from its NeRF."""
+    import numpy as np
+    from PIL import Image
+
+    frame = np.asarray(Image.open(out / "frames" / "frame_0002.png")).astype(float) / 255.0
+    if name == "teapot_rod":
+        assert metrics["nerf"]["warps"] == ["quadratic", "linear"] and metrics["nerf"]["source"] == "scene"
+        assert {"render (nerf)", "render (nerf_linear)"} <= set(metrics["time_breakdown"]["seconds"])
+        mesh, quadratic, linear, _ = np.split(frame, 4, axis=1)
+        for tile in (quadratic, linear):
+            assert (tile[..., 3] > 0.5).mean() > 0.2 and (tile[..., 3] < 0.5).mean() > 0.05  # object + ground, sky
+        alike = np.abs(quadratic[..., :3] - mesh[..., :3]).sum(-1) < 0.3
+        assert alike.mean() > 0.5, "the NeRF render looks like the mesh render of the same state"
+        assert list((cache / "scenes").glob("teapot-*/ngp-*.pt")), "the fitted NeRF is cached"
+    elif name == "lego":
+        checkpoint = Path(metrics["nerf"]["checkpoint"])
+        assert checkpoint.is_file() and checkpoint.is_relative_to(cache)
+        summary = metrics["variants"]["default"]["summary"]
+        assert summary["scene"] == str(checkpoint) and summary["particles"] > 50
+        width, height, depth = summary["bounding_box_m"]
+        assert 0.8 < width < 1.6 and 1.0 < height < 2.0 and 1.5 < depth < 2.6, "the excavator stands upright"
+        assert 0.05 < (frame[..., 3] > 0.5).mean() < 0.95
+
+
+def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_path, monkeypatch):
+    monkeypatch.setattr(render, "SHARED_DATA", tmp_path / "no-data")
+    metrics = _run(SCENARIOS[0].parent / "lego.toml", tmp_path / "lego", device)
+    assert metrics["skipped"].startswith(f"data folder {tmp_path / 'no-data' / 'nerf_synthetic_lego'} is absent")
+    assert not (tmp_path / "lego" / "frames").exists()

@@ -1,11 +1,13 @@
 """NGP NeRF: field, occupancy grid, rendering, ∇σ, metrics, checkpoints and a training-quality smoke run.
 
-The scenes are written by :func:`write_sphere_scene` into the NeRF-synthetic format (RGBA PNGs and a
-``transforms_train.json``): a ball with a smooth colour pattern, rendered analytically, so nothing here
-depends on data files.
+The unit tests use a ball written by :func:`write_sphere_scene` into the NeRF-synthetic format (RGBA PNGs and a
+``transforms_train.json``), with a smooth colour pattern rendered analytically. The training-quality test fits
+an embedded scene (the teapot with its striped rod, :func:`pienerf.scenes.render_scene`) and scores held-out
+views, so nothing here depends on data files.
 """
 
 import copy
+import dataclasses
 import json
 import math
 
@@ -15,9 +17,12 @@ import torch
 
 from kernels import backend
 from kernels.hashgrid import HashGridConfig
+from pienerf import scenes
 from pienerf.data import load_nerf_dataset
 from pienerf.metrics import psnr, ssim
 from pienerf.nerf import NerfDensity, NGPConfig, NGPField, OccupancyGrid, render_rays, spherical_harmonics
+from pienerf.nerf_backend import NerfFit, scene_nerf
+from pienerf.session import Simulation, SimulationConfig, orbit_cameras
 from pienerf.train import TrainConfig, Trainer, load_checkpoint, save_checkpoint
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -271,9 +276,10 @@ def test_checkpoint_round_trip_reproduces_renders(device, sphere_scene, tmp_path
         assert torch.equal(before[key], after[key]), key
 
     resumed = Trainer.from_checkpoint(path, data)
-    assert resumed.step == 12 and resumed.optimizer.state_dict()["state"].keys() == trainer.optimizer.state_dict()[
-        "state"
-    ].keys()
+    assert (
+        resumed.step == 12
+        and resumed.optimizer.state_dict()["state"].keys() == trainer.optimizer.state_dict()["state"].keys()
+    )
     resumed.train(2, progress=False)
     assert resumed.step == 14
 
@@ -308,18 +314,134 @@ def test_trainer_rejects_random_background_dataset(device, sphere_scene):
         Trainer(_field(), data, _train_config())
 
 
-def test_training_reaches_24_db_on_held_out_views(device, sphere_scene):
-    train, _ = load_nerf_dataset(sphere_scene, "train", downscale=2, background=(0.0, 0.0, 0.0)).held_out(8)
-    held_out = load_nerf_dataset(sphere_scene, "test", downscale=2, background=(1.0, 1.0, 1.0))
+# The training-quality run: the teapot rendered at 32² from 24 views (every 8th held out), a hash grid two octaves
+# coarser than SMALL's finest level (64 cells across the 0.8 m box is finer than a 32² pixel there) and 400 steps
+# of 768 rays. Over field/sampler seeds 0-3 this reached 26.0-26.7 dB on the held-out views.
+SCENE_NGP = dataclasses.replace(SMALL, hashgrid=dataclasses.replace(SMALL.hashgrid, max_resolution=64))
+
+
+def test_training_on_an_embedded_scene_reaches_24_db_on_held_out_views(device, tmp_path):
+    folder = scenes.render_scene("teapot", views=24, resolution=32, cache_dir=tmp_path, progress=False)
+    train = load_nerf_dataset(folder, "train", background=(0.0, 0.0, 0.0))
+    held_out = load_nerf_dataset(folder, "test", background=(1.0, 1.0, 1.0))
     assert len(train) == 21 and len(held_out) == 3
-    trainer = Trainer(_field(), train, _train_config())
+    lo, hi = scenes.scene_mesh("teapot").bounds
+    torch.manual_seed(0)
+    field = NGPField(SCENE_NGP, torch.stack([lo - 0.05, hi + 0.05])).to(backend.torch_device())
+    trainer = Trainer(field, train, _train_config(steps=400, batch_rays=768))
     stats = trainer.train(progress=False)
-    assert trainer.step == 300 and stats["loss"] < 0.01
+    assert trainer.step == 400 and stats["loss"] < 0.01
     assert trainer.grid.occupancy_fraction < 0.5, "the occupancy grid learnt where the empty space is"
     scores = trainer.evaluate(held_out)
     assert scores["psnr"] >= 24.0, scores
     assert scores["ssim"] >= 0.85, scores
     view = trainer.render_view(held_out.cameras, 0)
-    centre = held_out.cameras.height // 2, held_out.cameras.width // 2
-    assert float(view["opacity"][centre]) > 0.99 and float(view["opacity"][0, 0]) < 0.05, "alpha is learnt"
-    assert abs(float(view["depth"][centre]) - (3.0 - BALL_RADIUS)) < 0.05, "depth finds the ball's surface"
+    alpha = held_out.alphas[0].to(view["opacity"].device)
+    solid, empty = alpha > 0.99, alpha == 0.0
+    assert float(view["opacity"][solid].mean()) > 0.9 and float(view["opacity"][empty].mean()) < 0.1, "alpha is learnt"
+    meta = json.loads((folder / "transforms_test.json").read_text())
+    depth = torch.from_numpy(np.load(folder / meta["frames"][0]["depth_file_path"])).to(alpha.device)
+    error = (view["depth"] - depth)[solid & torch.isfinite(depth)].abs()
+    assert float(error.median()) < 0.1, "depth finds the teapot's surface (cameras stand about 2 m away)"
+
+
+# -- the NeRF of a simulation: fitted to an embedded scene, cached, simulated and rendered warped ---------------------
+
+TINY_FIT = NerfFit(
+    ngp=dataclasses.replace(
+        SCENE_NGP,
+        hashgrid=dataclasses.replace(SMALL.hashgrid, levels=6, max_resolution=64),
+        samples_per_diagonal=64,
+        grid_decay=0.6,  # a short fit: the occupancy grid forgets the initial fog within a few updates
+    ),
+    train=TrainConfig(steps=100, batch_rays=512, grid_warmup_steps=16),
+    views=16,
+    resolution=32,
+)
+SMOKE_BODY = dict(kernel_count=6, particle_radius=0.06, lloyd_iterations=0)
+
+
+@pytest.fixture(scope="module")
+def teapot_nerf(tmp_path_factory):
+    """The teapot's NeRF fitted by :func:`scene_nerf` into a fresh cache: ``(checkpoint, cache folder)``."""
+    backend.init(backend.default_device())
+    cache = tmp_path_factory.mktemp("cache")
+    stages = []
+    trained = scene_nerf("teapot", TINY_FIT, cache_dir=cache, progress=lambda stage, f: stages.append((stage, f)))
+    assert stages[0][0].startswith("rendering") and stages[-1][1] == 1.0 and "PSNR" in stages[-1][0]
+    return trained, cache
+
+
+def test_scene_nerf_is_cached_as_a_checkpoint(device, teapot_nerf):
+    trained, cache = teapot_nerf
+    (path,) = list(cache.glob("scenes/teapot-*/ngp-*.pt"))
+    stamp = path.stat().st_mtime_ns
+    stages = []
+    again = scene_nerf("teapot", TINY_FIT, cache_dir=cache, progress=lambda stage, f: stages.append(stage))
+    assert not [stage for stage in stages if "training" in stage], "the cached checkpoint was trained again"
+    assert path.stat().st_mtime_ns == stamp and again.step == trained.step == 100
+    for key, value in trained.field.state_dict().items():
+        assert torch.equal(value, again.field.state_dict()[key]), key
+    assert torch.equal(again.grid.occupied, trained.grid.occupied)
+    other = dataclasses.replace(TINY_FIT, train=dataclasses.replace(TINY_FIT.train, steps=101))
+    assert other.digest(scene="teapot") != TINY_FIT.digest(scene="teapot") != TINY_FIT.digest(scene="plant")
+
+
+def test_nerf_backend_renders_the_object_and_follows_the_deformation(device, teapot_nerf):
+    trained, _ = teapot_nerf
+    sim = Simulation(SimulationConfig(scene="teapot", floor=False, **SMOKE_BODY))
+    renderer = sim.add_nerf_render(trained.field, trained.grid)
+    assert renderer.ground is None and sim.render_backends["nerf"] is renderer
+    cameras = orbit_cameras(sim.centre, 2.0, [30.0], 20.0, 40, 32)
+    mesh = sim.render(cameras, 0, "mesh")
+    rest = sim.render(cameras, 0, "nerf")
+    assert rest.rgba.shape == (32, 40, 4) and rest.depth.shape == (32, 40)
+    inside, outside = mesh.rgba[..., 3].cpu() > 0.5, mesh.rgba[..., 3].cpu() == 0
+    alpha, depth = rest.rgba[..., 3].cpu(), rest.depth.cpu()
+    assert float(alpha[inside].mean()) > 0.6 and float(alpha[outside].mean()) < 0.1, "alpha covers the object"
+    assert bool(torch.isfinite(depth[alpha > 0.5]).all()) and bool(torch.isinf(depth[alpha <= 0.5]).all())
+
+    # A rigid shift of 15 cm to the camera's right moves the rendered teapot right by as many pixels as the mesh.
+    right = cameras.c2w[0, :3, 0].double()
+    sim.state.q.copy_(sim.model.translation(0.15 * right))
+    shifted_mesh, shifted = sim.render(cameras, 0, "mesh"), sim.render(cameras, 0, "nerf")
+    assert float((shifted.rgba - rest.rgba).abs().max()) > 0.5, "a deformation changes the image"
+
+    def centre_column(a: torch.Tensor) -> float:
+        a = a.cpu().float()
+        return float((a.sum(0) * torch.arange(a.shape[1])).sum() / a.sum())
+
+    moved = centre_column(shifted.rgba[..., 3]) - centre_column(rest.rgba[..., 3])
+    expected = centre_column(shifted_mesh.rgba[..., 3]) - centre_column(mesh.rgba[..., 3])
+    assert expected > 2.0 and abs(moved - expected) < 1.0, (moved, expected)
+
+    # The coarse preview renders 1/4 of the pixels per side, repeated to the camera's size.
+    renderer.downscale = 4
+    coarse = sim.render(cameras, 0, "nerf")
+    assert coarse.rgba.shape == (32, 40, 4) and torch.equal(coarse.rgba[0, 0], coarse.rgba[3, 3])
+    with pytest.raises(ValueError, match="downscale must be an integer"):
+        renderer.downscale = 0
+
+
+def test_simulation_of_a_nerf_checkpoint_samples_its_solid(device, teapot_nerf):
+    _, cache = teapot_nerf
+    (path,) = list(cache.glob("scenes/teapot-*/ngp-*.pt"))
+    sim = Simulation(SimulationConfig(scene=str(path), nerf_solid_resolution=48, **SMOKE_BODY))
+    solid = scenes.scene_density("teapot")
+    # The particles fill the teapot's body: none lies in the NeRF's empty space, and they span the body.
+    distance = solid.signed_distance(sim.particles.position.double().cpu())
+    assert float(distance.max()) < 0.04 and float((distance < 0.0).float().mean()) > 0.6
+    extent = sim.particles.position.amax(0) - sim.particles.position.amin(0)
+    assert float(extent[0]) > 0.3 and float(extent[1]) > 0.2
+    # The proxy mesh hugs the same solid and wears the colours the NeRF shows.
+    assert float(solid.signed_distance(sim.mesh_vertices.double()).abs().median()) < 0.05
+    views = load_nerf_dataset(path.parent, "train", background=(0.0, 0.0, 0.0))
+    seen = views.images[views.alphas > 0.99].mean(0)
+    torch.testing.assert_close(sim.mesh_colors.mean(0), seen, atol=0.2, rtol=0)
+    assert {"mesh", "particles", "nerf"} <= set(sim.render_backends)
+    sim.step(2)
+    before = sim.render_backends["nerf"].model
+    sim.resample(5)
+    assert sim.render_backends["nerf"].model is sim.model is not before, "the NeRF warp follows a re-sampling"
+    frame = sim.render(orbit_cameras(sim.centre, 2.0, [0.0], 20.0, 24, 16), 0, "nerf")
+    assert float(frame.rgba[..., 3].max()) > 0.9
