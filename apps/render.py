@@ -607,7 +607,7 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
                 for mode in run.modes:
                     for view in range(len(cameras)):
                         result = simulation.render(cameras, view, mode, shadow=outputs["shadow"])
-                        tiles.append(result.rgba)
+                        tiles.append(result.rgba.cpu())  # render modes may return different devices
                         stem = f"{run.name}_{mode}_view{view}_{frame:04d}"
                         if outputs["depth"]:
                             np.save(out / "depth" / f"{stem}.npy", result.depth.cpu().numpy().astype(np.float32))
