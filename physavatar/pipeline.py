@@ -67,13 +67,15 @@ from physavatar.track import TrackConfig, track
 
 __all__ = [
     "MOTIONS",
+    "STAGES",
     "PipelineConfig",
     "animate",
+    "appearance",
     "capture",
     "estimate",
     "evaluate",
-    "appearance",
     "run",
+    "stderr_progress",
     "track_stage",
 ]
 
