@@ -1,0 +1,58 @@
+"""The interactive viewer's per-frame work on the plant: one simulation step plus one render from a browser camera.
+
+``viewer_frame``: ``Simulation.step()`` + ``Simulation.render(mode="mesh")`` at 320×240 (smoke: 160×120), what
+:mod:`apps.demo` does each frame in its default mode. ``viewer_frame_nerf``: the same with the warped-NeRF mode
+(quadratic ray warping of the plant's NeRF, fitted on first use and cached, see
+:func:`pienerf.nerf_backend.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
+Throughput is frames per second of step + render.
+"""
+
+from __future__ import annotations
+
+from apps.workloads import Case, workload
+from kernels import backend
+
+_SIZE = {"smoke": (160, 120), "paper": (320, 240), "large": (640, 480)}
+
+
+def _case(size: str, mode: str) -> Case:
+    from pienerf.session import Simulation, SimulationConfig, orbit_cameras
+
+    simulation = Simulation(SimulationConfig(scene="plant"))
+    if mode == "nerf":
+        import dataclasses
+
+        from pienerf.nerf_backend import NerfFit, scene_nerf
+
+        fit = NerfFit()  # the viewer's own fit, so its cached checkpoint is reused
+        if size == "smoke":
+            fit = dataclasses.replace(fit, views=12, resolution=32, train=dataclasses.replace(fit.train, steps=50))
+        trained = scene_nerf("plant", fit)
+        simulation.add_nerf_render(trained.field, trained.grid)
+    width, height = _SIZE[size]
+    centre = simulation.mesh_vertices.float().mean(0).tolist()
+    cameras = orbit_cameras(centre, 1.6, [30.0], 20.0, width, height)
+
+    def run():
+        simulation.step()
+        frame = simulation.render(cameras, 0, mode)
+        backend.synchronize()
+        return frame.rgba
+
+    return Case(
+        run=run,
+        reference=None,
+        params={"scene": "plant", "mode": mode, "size": f"{width}x{height}"},
+        work=1.0,
+        unit="frames/s",
+    )
+
+
+@workload("viewer_frame", "the viewer's frame on the plant: one step + one mesh render from a browser camera")
+def bench_viewer_frame(device: str, size: str) -> Case:
+    return _case(size, "mesh")
+
+
+@workload("viewer_frame_nerf", "the viewer's frame on the plant: one step + one warped-NeRF render")
+def bench_viewer_frame_nerf(device: str, size: str) -> Case:
+    return _case(size, "nerf")
