@@ -542,7 +542,8 @@ class SolverCloth:
             ValueError: malformed inputs, a static solve without boundary vertices, or a garment that starts
                 inside or touching the body collider.
         """
-        return _one_thread_on_cpu(self._step, state_in, state_out, control, dt)
+        with backend.one_torch_thread_on_cpu():
+            return self._step(state_in, state_out, control, dt)
 
     def _context(self, state_in: ClothState, control: ClothControl, dt: float):
         """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet)."""
@@ -687,9 +688,8 @@ class SolverCloth:
         Raises:
             ValueError: malformed inputs or unknown parameter names.
         """
-        return _one_thread_on_cpu(
-            self._sensitivity_step, state_in, state_out, control, dt, s_x, s_v, tuple(parameters), exact_hessian
-        )
+        with backend.one_torch_thread_on_cpu():
+            return self._sensitivity_step(state_in, state_out, control, dt, s_x, s_v, tuple(parameters), exact_hessian)
 
     def _sensitivity_step(self, state_in, state_out, control, dt, s_x, s_v, parameters, exact_hessian):
         cfg = self.config
@@ -1060,22 +1060,6 @@ class SolverCloth:
             return math.sqrt(max(float(d.min()), 0.0)) if d.numel() else math.inf
 
         return smallest(body), smallest(own), contacts
-
-
-def _one_thread_on_cpu(function, *args):
-    """Run ``function(*args)`` with one torch thread on the CPU.
-
-    A step's tensors are small (thousands of rows): torch's intra-op threads cost more to wake than they save, and
-    on shared cores they wait on each other. One thread ran the 1k-vertex sheet step 5x faster.
-    """
-    if backend.torch_device().type != "cpu":
-        return function(*args)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return function(*args)
-    finally:
-        torch.set_num_threads(threads)
 
 
 class _StepContext(NamedTuple):

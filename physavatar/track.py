@@ -144,24 +144,8 @@ def _concat(garment: GaussianAppearance, body: GaussianAppearance, colors: torch
     )
 
 
-def track(*args, **kwargs) -> TrackResult:
-    """Track the garment through the capture (§3.1): see :func:`_track` for the arguments.
-
-    On the CPU, torch runs single-threaded meanwhile: each iteration is hundreds of small tensor operations
-    around the rasterizer's kernels, and on two shared cores torch's intra-op threads cost more to wake than they
-    save (an iteration of 4 views at 96² took 0.13 s on one thread and over a second on two busy ones).
-    """
-    if backend.torch_device().type != "cpu":
-        return _track(*args, **kwargs)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return _track(*args, **kwargs)
-    finally:
-        torch.set_num_threads(threads)
-
-
-def _track(
+@backend.one_torch_thread_on_cpu()
+def track(
     capture: Capture,
     first_vertices: torch.Tensor,
     faces: torch.Tensor,
@@ -171,7 +155,10 @@ def _track(
     truth: torch.Tensor | None = None,
     progress: bool | Callable[[int, float, float], None] = True,
 ) -> TrackResult:
-    """Track the garment through the capture (:func:`track`).
+    """Track the garment through the capture (§3.1).
+
+    On the CPU, torch runs single-threaded meanwhile (:func:`kernels.backend.one_torch_thread_on_cpu`): each
+    iteration is hundreds of small tensor operations around the rasterizer's kernels.
 
     Args:
         capture: ``T`` frames of ``C`` views with their cameras.

@@ -68,3 +68,17 @@ def test_tensor_on_wrong_device_is_refused(device):
         pytest.skip("needs a second device to put the tensor on")
     with pytest.raises(ValueError, match="move it"):
         backend.taichi_arg(torch.zeros(3))
+
+
+def test_one_torch_thread_on_cpu_limits_and_restores_the_thread_count(device):
+    before = torch.get_num_threads()
+
+    @backend.one_torch_thread_on_cpu()
+    def inside():
+        return torch.get_num_threads()
+
+    assert inside() == (1 if device == "cpu" else before)
+    with pytest.raises(RuntimeError):
+        with backend.one_torch_thread_on_cpu():
+            raise RuntimeError("the count is restored on errors too")
+    assert torch.get_num_threads() == before
