@@ -181,14 +181,24 @@ def _motion(name: str, body: Body, frames: int, fps: float):
     return clip
 
 
-def _drive(body: Body, garment_rest: torch.Tensor, boundary: torch.Tensor, clip, frames: int):
-    """Body vertices ``[T, B, 3]`` and boundary targets ``[T, D, 3]`` of the first ``frames`` poses."""
+def _forward(config: PipelineConfig, body: Body, garment, boundary: torch.Tensor, motion: str, frames: int):
+    """The garment at rest driven through the first ``frames`` poses of ``motion``: the body's skinned vertices and the
+    boundary's targets, as a problem :func:`physavatar.estimate.rollout` simulates (its reference is a placeholder,
+    the rest shape). Returns ``(problem, clip)``."""
+    clip = _motion(motion, body, frames, config.fps)
     rotations, translation = clip.rotations[:frames], clip.root_translation[:frames]
-    return body.skin(rotations, translation), boundary_targets(body, garment_rest[boundary], rotations, translation)
-
-
-def _problem(rest, faces, reference, body_frames, body_faces, boundary, targets, fps, fabric) -> EstimationProblem:
-    return EstimationProblem(rest, faces, reference, body_frames, body_faces, boundary, targets, fps, fabric)
+    problem = EstimationProblem(
+        garment.vertices,
+        garment.faces,
+        garment.vertices.expand(frames, -1, -1),
+        body.skin(rotations, translation),
+        body.faces,
+        boundary,
+        boundary_targets(body, garment.vertices[boundary], rotations, translation),
+        config.fps,
+        config.fabric,
+    )
+    return problem, clip
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -200,21 +210,10 @@ def capture(config: PipelineConfig, out: Path, progress: Progress | None = None)
     """Simulate the truth under the fitting motion and film it; writes ``out/capture``."""
     folder = Path(out) / "capture"
     body, garment, boundary = _scene(config)
-    clip = _motion(config.fit_motion, body, config.frames, config.fps)
-    body_frames, targets = _drive(body, garment.vertices, boundary, clip, config.frames)
+    problem, _ = _forward(config, body, garment, boundary, config.fit_motion, config.frames)
+    body_frames, targets = problem.body_frames, problem.boundary_targets
     truth = FabricParameters.from_config(config.fabric)
     _say(progress, "capture", f"simulating the truth ({config.frames} frames, {garment.vertices.shape[0]} vertices)")
-    problem = _problem(
-        garment.vertices,
-        garment.faces,
-        garment.vertices.expand(config.frames, -1, -1),
-        body_frames,
-        body.faces,
-        boundary,
-        targets,
-        config.fps,
-        config.fabric,
-    )
     frames = rollout(problem, truth).frames
     albedo = garment_albedo(garment.vertices, garment.faces, pattern="checks", bands=6)
     rig = _rig(config, body)
@@ -326,7 +325,7 @@ def estimate(config: PipelineConfig, out: Path, progress: Progress | None = None
     given = _inputs(capture_dir)
     reference = torch.as_tensor(load_truth(capture_dir)["garment_frames"]) if exact else _tracked(out)["vertices"]
     _check_frames(reference.shape[0], given["body_frames"].shape[0], "the reference", "inputs.npz's body frames")
-    problem = _problem(
+    problem = EstimationProblem(
         given["first_vertices"],
         given["faces"],
         reference,
@@ -446,22 +445,10 @@ def animate(config: PipelineConfig, out: Path, progress: Progress | None = None)
     body, garment, boundary = _scene(config)
     if not torch.equal(garment.faces, given["faces"]):
         raise ValueError("the capture's garment differs from this configuration's skirt; use the capture's config")
-    clip = _motion(config.eval_motion, body, config.eval_frames, config.fps)
-    body_frames, targets = _drive(body, garment.vertices, boundary, clip, config.eval_frames)
+    problem, clip = _forward(config, body, garment, boundary, config.eval_motion, config.eval_frames)
     generator = np.random.default_rng(config.random_seed)
     lo, hi = math.log(0.1), math.log(8.0)
     random = FabricParameters(truth.density, *np.exp(generator.uniform(lo, hi, size=2)).tolist())
-    problem = _problem(
-        garment.vertices,
-        garment.faces,
-        garment.vertices.expand(config.eval_frames, -1, -1),
-        body_frames,
-        body.faces,
-        boundary,
-        targets,
-        config.fps,
-        config.fabric,
-    )
     sequences = {}
     for name, params in (("truth", truth), ("full", recovered), ("without_physics", random)):
         _say(progress, "animate", f"{name}: κ_s {params.kappa_s:.3f}, κ_b {params.kappa_b:.3f}")
@@ -473,7 +460,7 @@ def animate(config: PipelineConfig, out: Path, progress: Progress | None = None)
     np.savez_compressed(
         folder / "animation.npz",
         **{k: v.numpy() for k, v in sequences.items()},
-        body_frames=body_frames.numpy(),
+        body_frames=problem.body_frames.numpy(),
         faces=garment.faces.numpy(),
         body_faces=body.faces.numpy(),
         random_parameters=np.array([random.density, random.kappa_s, random.kappa_b]),
