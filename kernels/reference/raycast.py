@@ -101,6 +101,24 @@ def closest_points(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Te
     return best
 
 
+def winding_number(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Generalised winding number ``[P]`` (float64) of the mesh at each point: the sum of the signed solid angles
+    of all triangles over 4π (Van Oosterom and Strackee 1983); 1 inside a closed outward-oriented mesh, 0 outside.
+    """
+    tri = vertices.detach().to(torch.float64)[faces.long()]
+    points = points.detach().to(torch.float64)
+    out = torch.empty(points.shape[0], dtype=torch.float64)
+    rows = max(1, _PAIRS_PER_CHUNK // max(tri.shape[0], 1))
+    for start in range(0, points.shape[0], rows):
+        rel = tri[None] - points[start : start + rows, None, None, :]
+        a, b, c = rel[..., 0, :], rel[..., 1, :], rel[..., 2, :]
+        la, lb, lc = (torch.linalg.norm(t, dim=-1) for t in (a, b, c))
+        num = (a * torch.linalg.cross(b, c, dim=-1)).sum(-1)
+        den = la * lb * lc + (a * b).sum(-1) * lc + (b * c).sum(-1) * la + (c * a).sum(-1) * lb
+        out[start : start + rows] = torch.atan2(num, den).sum(1) / (2.0 * math.pi)
+    return out
+
+
 def shade(
     vertices: torch.Tensor,
     faces: torch.Tensor,

@@ -68,6 +68,20 @@ def test_closest_points_match_brute_force(device):
     assert bool((near.face.cpu()[far] == -1).all())
 
 
+def test_inside_matches_the_exact_winding_number(device):
+    vertices, faces = _bumpy_sphere(1)
+    generator = torch.Generator().manual_seed(5)
+    points = (torch.rand(800, 3, generator=generator) * 2.0 - 1.0) * 1.5
+    exact = reference.winding_number(vertices, faces, points)
+    clear = (exact - 0.5).abs() > 0.05  # leave out points on the surface itself, where the sign is a tie
+    bvh = MeshBVH(*_on_device(vertices, faces), winding_numbers=True)
+    inside = bvh.inside(points.to(backend.torch_device())).cpu()
+    assert 100 < int((exact > 0.5).sum()) < 700
+    assert torch.equal(inside[clear], (exact > 0.5)[clear])
+    with pytest.raises(ValueError, match="winding_numbers=True"):
+        MeshBVH(*_on_device(vertices, faces)).inside(points.to(backend.torch_device()))
+
+
 def test_max_distance_turns_far_hits_into_misses(device):
     vertices, faces = _bumpy_sphere(2)
     origins, directions = _rays(300, 3)
