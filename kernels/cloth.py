@@ -190,19 +190,25 @@ def rest_state(x_rest: torch.Tensor, faces: torch.Tensor, hinges: torch.Tensor) 
     return ClothRest(torch.linalg.inv(dm).contiguous(), 0.5 * double_area, angle, weight)
 
 
-def project_psd(hess: torch.Tensor) -> torch.Tensor:
-    """Nearest positive semi-definite matrices (in the Frobenius norm) of a batch of symmetric matrices.
+def project_psd(hess: torch.Tensor, absolute: bool = False) -> torch.Tensor:
+    """Positive semi-definite stand-ins for a batch of symmetric matrices.
 
     Args:
         hess: ``[N, n, n]`` symmetric matrices.
+        absolute: flip negative eigenvalues instead of clamping them (Chen et al. 2024, "Stabler Neo-Hookean
+            simulation: absolute eigenvalue filtering for projected Newton"): the Newton direction then keeps
+            the curvature of buckling modes instead of treating them as flat, which takes projected Newton to
+            convergence in fewer iterations on compressed cloth.
 
     Returns:
-        ``[N, n, n]``: ``Q max(Λ, 0) Qᵀ`` of each eigen-decomposition ``Q Λ Qᵀ``.
+        ``[N, n, n]``: ``Q max(Λ, 0) Qᵀ`` of each eigen-decomposition ``Q Λ Qᵀ`` (the nearest PSD matrix in the
+        Frobenius norm), or ``Q |Λ| Qᵀ`` with ``absolute``.
     """
     if hess.shape[0] == 0:
         return hess.clone()
     eigval, eigvec = torch.linalg.eigh(hess)
-    return (eigvec * eigval.clamp_min(0.0).unsqueeze(-2)) @ eigvec.transpose(-1, -2)
+    eigval = eigval.abs() if absolute else eigval.clamp_min(0.0)
+    return (eigvec * eigval.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -56,6 +57,7 @@ import scipy.sparse.linalg
 import torch
 
 from kernels import backend, cloth
+from kernels.raycast import MeshBVH
 from kernels.spatial_hash import SpatialHash
 
 __all__ = [
@@ -63,6 +65,7 @@ __all__ = [
     "ClothControl",
     "ClothEnergies",
     "ClothState",
+    "DENSE_MAX_DOFS",
     "SENSITIVITY_PARAMETERS",
     "SolverCloth",
     "StepStats",
@@ -75,6 +78,8 @@ __all__ = [
 F64 = torch.float64
 DENSITY_RANGE = (200.0, 640.0)
 STIFFNESS_RANGE = (0.1, 8.0)
+DENSE_MAX_DOFS = 30_000
+"""Largest free-DOF count that ``linear_solver="auto"`` factors densely on CUDA (a float64 matrix of 7.2 GB)."""
 PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
 SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
 
@@ -97,11 +102,22 @@ class ClothConfig:
         friction_velocity: IPC's static-friction velocity ``ε_v``, m/s (C-IPC: 1e-3).
         newton_tolerance: stop when ``‖p‖_∞ / Δt`` falls below this, m/s.
         max_newton_iterations: cap on Newton iterations per step.
+        elastic_projection: how the membrane and bending Hessians are made PSD for the Newton direction:
+            ``"abs"`` flips their negative eigenvalues (absolute eigenvalue filtering, Chen et al. 2024), ``"clamp"``
+            zeroes them (the nearest PSD matrix, as C-IPC); ``"auto"``: abs for dynamic steps, clamp for static
+            solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance
+            sooner, while clamping converges faster in the tail of a tight solve. Measured: the 3757-vertex
+            ``skirt7271`` on the walking mannequin, default tolerance, first 4 frames: 40 Newton iterations with
+            abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric of :mod:`physavatar.estimate` at 1e-4
+            m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip to 1e-9 m: clamp converges, abs
+            does not within 30 iterations. Barrier Hessians are always clamped.
         gravity: gravitational acceleration ``[3]``, m/s².
         static: minimise ``Ψ − Σ m g·x`` without inertia or friction (a static equilibrium solve; needs
             Dirichlet vertices); ``Δt`` then only scales the barrier stiffness and the tolerance.
-        linear_solver: ``"direct"`` (SuperLU on the host), ``"cg"`` (block-Jacobi CG in torch) or ``"auto"``
-            (direct on the CPU, CG on CUDA).
+        linear_solver: ``"direct"`` (SuperLU on the host), ``"dense"`` (dense Cholesky on the device, cuSOLVER on
+            CUDA), ``"cg"`` (block-Jacobi CG in torch) or ``"auto"``: direct on the CPU; on CUDA dense up to
+            :data:`DENSE_MAX_DOFS` free DOFs (1 GB and ~20 ms per factorisation for the 3757-vertex skirt7271 on an
+            H100, where CG needed thousands of iterations), CG beyond.
         cg_tolerance: relative residual at which CG stops.
         cg_max_iterations: cap on CG iterations per Newton iteration.
         ccd_eta: ACCD's ``η``: a step may close at most ``1 − η`` of any pair's gap (Codim-IPC: 0.1).
@@ -119,6 +135,7 @@ class ClothConfig:
     friction_velocity: float = 1e-3
     newton_tolerance: float = 1e-2
     max_newton_iterations: int = 50
+    elastic_projection: str = "auto"
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     static: bool = False
     linear_solver: str = "auto"
@@ -152,8 +169,10 @@ class ClothConfig:
             raise ValueError("max_newton_iterations and cg_max_iterations must be at least 1")
         if len(self.gravity) != 3:
             raise ValueError(f"gravity must have 3 components, got {self.gravity}")
-        if self.linear_solver not in ("auto", "direct", "cg"):
-            raise ValueError(f"linear_solver ({self.linear_solver!r}) must be 'auto', 'direct' or 'cg'")
+        if self.elastic_projection not in ("auto", "abs", "clamp"):
+            raise ValueError(f"elastic_projection ({self.elastic_projection!r}) must be 'auto', 'abs' or 'clamp'")
+        if self.linear_solver not in ("auto", "direct", "dense", "cg"):
+            raise ValueError(f"linear_solver ({self.linear_solver!r}) must be 'auto', 'direct', 'dense' or 'cg'")
         if not 0.0 < self.ccd_eta < 1.0:
             raise ValueError(f"ccd_eta ({self.ccd_eta}) must lie in (0, 1)")
 
@@ -517,7 +536,9 @@ class SolverCloth:
         self.body_faces = (body_faces.to(device).long() + v).contiguous()
         self.body_edges = _unique_edges(body_faces.to(device)) + v if body_faces.numel() else self.edges[:0]
         solver = config.linear_solver
-        self.linear_solver = ("cg" if device.type == "cuda" else "direct") if solver == "auto" else solver
+        if solver == "auto":
+            solver = "direct" if device.type != "cuda" else ("dense" if 3 * v <= DENSE_MAX_DOFS else "cg")
+        self.linear_solver = solver
         self._checked_inside = False
 
     def initial_state(self) -> ClothState:
@@ -788,7 +809,7 @@ class SolverCloth:
         """Refuse a start state that touches the body or lies inside it (the barrier needs a positive gap)."""
         v = self.vertex_count
         if not self._checked_inside and self.body_faces.numel():
-            inside = _winding_number(X[:v], b0, self.body_faces - v) > 0.5
+            inside = MeshBVH(b0, self.body_faces - v, winding_numbers=True).inside(X[:v])
             if bool(inside.any()):
                 raise ValueError(
                     f"{int(inside.sum())} garment vertices start inside the body collider (e.g. vertex "
@@ -929,27 +950,17 @@ class SolverCloth:
             parts["inertia"] = torch.zeros_like(X)
             parts["inertia"][:v] = inertia
         project = hessian and project
+        absolute = cfg.elastic_projection == "abs" or (cfg.elastic_projection == "auto" and not cfg.static)
+
+        def elastic(terms: cloth.ElementTerms) -> cloth.ElementTerms:
+            return terms._replace(hess=cloth.project_psd(terms.hess, absolute)) if project else terms
+
         e = self.energies
-        add(
-            self.faces.long(),
-            e.membrane(
-                x,
-                self.faces,
-                self.rest.rest_inv,
-                self.rest.rest_area,
-                self.membrane_mu,
-                self.membrane_lambda,
-                project=project,
-            ),
-            dt2,
-            "membrane",
-        )
-        add(
-            self.hinges.long(),
-            e.bending(x, self.hinges, self.rest.rest_angle, self.rest.rest_weight, self.k_bend, project=project),
-            dt2,
-            "bending",
-        )
+        rest = self.rest
+        membrane = e.membrane(x, self.faces, rest.rest_inv, rest.rest_area, self.membrane_mu, self.membrane_lambda)
+        add(self.faces.long(), elastic(membrane), dt2, "membrane")
+        bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
+        add(self.hinges.long(), elastic(bending), dt2, "bending")
         if near.pt.shape[0] or near.ee.shape[0]:
             eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
             pt, ee = e.contact(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa, project=False)
@@ -1007,6 +1018,8 @@ class SolverCloth:
         if self.linear_solver == "direct":
             h = scipy.sparse.csc_matrix((vals.cpu().numpy(), (r.cpu().numpy(), c.cpu().numpy())), shape=(3 * n, 3 * n))
             return torch.from_numpy(_sparse_spd_solve(h, rhs.cpu().numpy())).to(rhs.device)
+        if self.linear_solver == "dense":
+            return _dense_solve(r, c, vals, rhs, 3 * n)
         return _block_jacobi_cg(
             r, c, vals, rows, cols, blocks, rhs, n, self.config.cg_tolerance, self.config.cg_max_iterations
         )
@@ -1095,9 +1108,23 @@ def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
     return scipy.sparse.linalg.splu(h, permc_spec="COLAMD").solve(rhs)
 
 
+def _dense_solve(r, c, vals, rhs, size: int) -> torch.Tensor:
+    """Solve ``H x = rhs`` with ``H`` given as COO triplets, densely on the device: Cholesky, or LU where ``H`` is
+    not positive definite (the exact Hessians of a sensitivity step may not be)."""
+    h = torch.zeros(size, size, dtype=vals.dtype, device=vals.device)
+    h.index_put_((r, c), vals, accumulate=True)
+    factor, info = torch.linalg.cholesky_ex(h)
+    column = rhs if rhs.dim() == 2 else rhs[:, None]
+    x = torch.cholesky_solve(column, factor) if int(info) == 0 else torch.linalg.solve(h, column)
+    return x if rhs.dim() == 2 else x[:, 0]
+
+
 def _block_jacobi_cg(r, c, vals, rows, cols, blocks, rhs, n, tol, max_iterations) -> torch.Tensor:
     """Conjugate gradients on the sparse SPD ``H`` with the inverse 3×3 diagonal blocks as preconditioner."""
-    h = torch.sparse_coo_tensor(torch.stack([r, c]), vals, (3 * n, 3 * n)).coalesce().to_sparse_csr()
+    with warnings.catch_warnings():  # "sparse CSR support is in beta": mv on CSR is all this needs
+        warnings.simplefilter("ignore", UserWarning)
+        coo = torch.sparse_coo_tensor(torch.stack([r, c]), vals, (3 * n, 3 * n), check_invariants=False)
+        h = coo.coalesce().to_sparse_csr()
     diag = rows == cols
     d = torch.zeros(n, 3, 3, dtype=vals.dtype, device=vals.device).index_add_(0, rows[diag], blocks[diag])
     d_inv = torch.linalg.inv(d)
@@ -1111,39 +1138,16 @@ def _block_jacobi_cg(r, c, vals, rows, cols, blocks, rhs, n, tol, max_iterations
     p = z.clone()
     rz = torch.dot(res, z)
     stop = tol * tol * float(torch.dot(rhs, rhs))
-    for _ in range(max_iterations):
+    for k in range(max_iterations):
         hp = torch.mv(h, p)
         step = rz / torch.dot(p, hp)
         x += step * p
         res -= step * hp
-        if float(torch.dot(res, res)) <= stop:
+        # the residual test reads the device's value back: every 8th iteration, so a GPU is not stalled each time
+        if k % 8 == 7 and float(torch.dot(res, res)) <= stop:
             break
         z = precondition(res)
         rz_next = torch.dot(res, z)
         p = z + (rz_next / rz) * p
         rz = rz_next
     return x
-
-
-def _winding_number(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Generalised winding number of a triangle mesh at each point (solid angles, Van Oosterom and Strackee 1983).
-
-    Args:
-        points: ``[N, 3]``, m.
-        vertices: ``[B, 3]``, m.
-        faces: ``[F, 3]`` outward-oriented triangles.
-
-    Returns:
-        ``[N]``: 1 inside a closed mesh, 0 outside.
-    """
-    tri = vertices[faces]
-    out = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
-    chunk = max(1, (1 << 22) // max(1, faces.shape[0]))
-    for s in range(0, points.shape[0], chunk):
-        rel = tri[None] - points[s : s + chunk, None, None, :]
-        a, b, c = rel[..., 0, :], rel[..., 1, :], rel[..., 2, :]
-        la, lb, lc = (torch.linalg.norm(t, dim=-1) for t in (a, b, c))
-        num = (a * torch.linalg.cross(b, c)).sum(-1)
-        den = la * lb * lc + (a * b).sum(-1) * lc + (b * c).sum(-1) * la + (c * a).sum(-1) * lb
-        out[s : s + chunk] = torch.atan2(num, den).sum(1) / (2.0 * math.pi)
-    return out

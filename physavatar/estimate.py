@@ -82,6 +82,7 @@ SYNTHETIC_FABRIC = ClothConfig(
     poisson=0.243,
     thickness=2.0e-3,
     newton_tolerance=1e-4,
+    elastic_projection="clamp",
 )
 """A heavy, soft synthetic fabric whose stretch and bending both show in the motion of a 0.3–0.5 m garment.
 

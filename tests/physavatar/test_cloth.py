@@ -117,6 +117,21 @@ def test_sheet_dropped_on_sphere_never_penetrates(device):
     assert float(state.x[:, 1].min()) < 0.1  # the rim drapes down
 
 
+def test_linear_solvers_take_the_same_steps(device):
+    """Sparse direct, dense Cholesky and CG solve the same Newton systems: the sheet lands on the sphere alike."""
+    finals = {}
+    for solver_name in ("direct", "dense", "cg"):
+        solver, control, _, _ = _sheet_over_sphere(8, ClothConfig(linear_solver=solver_name, cg_tolerance=1e-12))
+        assert solver.linear_solver == solver_name
+        state = solver.initial_state()
+        for _ in range(8):
+            stats = solver.step(state, state, control, 0.04)
+        assert stats.min_distance_body < solver.config.contact_distance  # in contact by the last step
+        finals[solver_name] = state.x.cpu()
+    torch.testing.assert_close(finals["dense"], finals["direct"], rtol=0.0, atol=1e-7)
+    torch.testing.assert_close(finals["cg"], finals["direct"], rtol=0.0, atol=1e-6)
+
+
 def test_cpu_steps_are_bitwise_reproducible(device):
     """Same inputs on the CPU give identical output, run to run."""
     if device != "cpu":
