@@ -47,6 +47,8 @@ def test_pipeline_writes_every_stage_and_the_table(experiment):
         assert np.isfinite(entry["chamfer"]) and 0.0 <= entry["fscore"] <= 1.0 and entry["psnr"] > 10.0
     # The recovered texture renders closer to the truth than the baked one, on the same geometry.
     assert report["methods"]["full"]["psnr"] > report["methods"]["without_appearance"]["psnr"]
+    chamfer = {name: entry["chamfer"] for name, entry in report["methods"].items()}
+    assert chamfer["full"] < chamfer["without_physics"] < chamfer["lbs"], chamfer  # the order of Table 2
     markdown = (out / "evaluate" / "report.md").read_text()
     assert "| PhysAvatar (full) |" in markdown and "κ_s/ρ" in markdown
     for image in (
