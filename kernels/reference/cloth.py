@@ -42,7 +42,7 @@ def _terms(energy_fn, q: torch.Tensor, *params: torch.Tensor):
 def _membrane_element(q, dm_inv, area, mu, lam):
     ds = torch.stack([q[1] - q[0], q[2] - q[0]], dim=1)
     f = ds @ dm_inv
-    strain = 0.5 * (f.T @ f - torch.eye(2, dtype=q.dtype))
+    strain = 0.5 * (f.T @ f - torch.eye(2, dtype=q.dtype, device=q.device))
     return area * (mu * (strain**2).sum() + 0.5 * lam * torch.trace(strain) ** 2)
 
 
