@@ -79,7 +79,8 @@ F64 = torch.float64
 DENSITY_RANGE = (200.0, 640.0)
 STIFFNESS_RANGE = (0.1, 8.0)
 DENSE_MAX_DOFS = 30_000
-"""Largest free-DOF count that ``linear_solver="auto"`` factors densely on CUDA (a float64 matrix of 7.2 GB)."""
+"""Largest garment DOF count (3 per vertex) that ``linear_solver="auto"`` factors densely on CUDA (a float64 matrix
+of up to 7.2 GB)."""
 PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
 SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
 
@@ -116,7 +117,7 @@ class ClothConfig:
             Dirichlet vertices); ``Δt`` then only scales the barrier stiffness and the tolerance.
         linear_solver: ``"direct"`` (SuperLU on the host), ``"dense"`` (dense Cholesky on the device, cuSOLVER on
             CUDA), ``"cg"`` (block-Jacobi CG in torch) or ``"auto"``: direct on the CPU; on CUDA dense up to
-            :data:`DENSE_MAX_DOFS` free DOFs (1 GB and ~20 ms per factorisation for the 3757-vertex skirt7271 on an
+            :data:`DENSE_MAX_DOFS` garment DOFs (1 GB and ~20 ms per factorisation for the 3757-vertex skirt7271 on an
             H100, where CG needed thousands of iterations), CG beyond.
         cg_tolerance: relative residual at which CG stops.
         cg_max_iterations: cap on CG iterations per Newton iteration.
@@ -1009,7 +1010,7 @@ class SolverCloth:
         """Solve ``H p = rhs`` for the free DOFs (``H`` SPD as 3×3 COO blocks; ``rhs`` ``[3n]`` or ``[3n, P]``)."""
         if n == 0:
             return rhs.new_zeros(rhs.shape)
-        if rhs.dim() == 2 and self.linear_solver != "direct":
+        if rhs.dim() == 2 and self.linear_solver == "cg":
             return torch.stack([self._solve(rows, cols, blocks, rhs[:, j], n) for j in range(rhs.shape[1])], 1)
         i = torch.arange(3, device=rows.device)
         r = (3 * rows[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
