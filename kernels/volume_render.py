@@ -31,6 +31,15 @@ in a second front-to-back sweep, with no per-sample storage beyond the inputs:
 
 where ``C_{≤i}`` is the running sum up to and including sample ``i``.
 
+Rendering in rounds (instant-NGP's inference loop): :func:`march_start` clips every ray to the box, and each
+call of :func:`march_resume` marches the rays still alive by at most ``k`` more samples, from the depth where
+their previous round stopped (:class:`MarchState`), skipping rays whose transmittance already fell below the
+threshold; :func:`composite_accumulate` composites a round's samples onto each ray's running sums
+(:class:`CompositeState`). The march loop and the compositing loop are the very Taichi functions the one-pass
+kernels run, so the rounds of a ray emit bit for bit the samples of one :func:`march_rays` call and composite to
+the sums of one :func:`composite_forward` call; what changes is that samples behind an opaque surface are never
+marched, and so never shaded.
+
 Framework: Taichi. Both kernels loop over one ray per thread with a data-dependent inner loop, the shape
 the project's rule gives to Taichi for per-sample rendering that must run interactively on a CPU (Taichi
 runs them on every core; Warp's CPU backend on one); a Warp port was not written. Figures from
@@ -40,6 +49,7 @@ packed samples, forward + backward through :class:`VolumeRenderFunction`) on thi
 reference (segmented ``cumsum`` + ``index_add_`` + autograd), 9.1x. Not yet measured on CUDA.
 """
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -50,12 +60,19 @@ from kernels import backend
 
 __all__ = [
     "DEFAULT_TRANSMITTANCE_THRESHOLD",
+    "CompositeState",
+    "MarchState",
     "RaySamples",
+    "RoundSamples",
     "VolumeRenderFunction",
     "composite",
+    "composite_accumulate",
     "composite_backward",
     "composite_forward",
+    "composite_start",
     "march_rays",
+    "march_resume",
+    "march_start",
 ]
 
 DEFAULT_TRANSMITTANCE_THRESHOLD = 1e-4
@@ -106,6 +123,51 @@ def _cell_exit_ti(p, d, cell, lo, cell_size):
     return ti.max(t_exit, 0.0)
 
 
+@ti.func
+def _march_segment_ti(
+    o,
+    d,
+    t,
+    t_end,
+    budget,
+    occupancy: ti.template(),
+    lo,
+    cell_size,
+    resolution,
+    min_step,
+    max_step,
+    cone_angle,
+    positions: ti.template(),
+    depths: ti.template(),
+    deltas: ti.template(),
+    base,
+    write: ti.template(),
+):
+    """March one ray from depth ``t`` until ``budget`` samples are emitted or ``t`` reaches ``t_end``.
+
+    Samples go to rows ``base, base + 1, …`` (when ``write``). Returns ``(t, emitted)``: the depth to resume from,
+    on the same lattice, and the number of samples emitted. :func:`march_rays` runs it once per ray,
+    :func:`march_resume` in rounds; both therefore emit the same samples.
+    """
+    emitted = 0
+    while t < t_end and emitted < budget:
+        dt = _step_ti(t, min_step, max_step, cone_angle)
+        p = o + t * d
+        cell = ti.math.clamp(ti.cast(ti.floor((p - lo) / cell_size), ti.i32), 0, resolution - 1)
+        if occupancy[cell[0], cell[1], cell[2]] != 0:
+            if ti.static(write):
+                positions[base + emitted] = p
+                depths[base + emitted] = t
+                deltas[base + emitted] = dt
+            emitted += 1
+            t += dt
+        else:
+            # Jump whole steps to just past the cell's exit, staying on the lattice t_0 + k dt.
+            skip = _cell_exit_ti(p, d, cell, lo, cell_size)
+            t += (ti.floor(skip / dt) + 1.0) * dt
+    return t, emitted
+
+
 @ti.kernel
 def _march_ti(
     origins: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
@@ -139,21 +201,26 @@ def _march_ti(
             base = ray_offsets[r]
         if t_begin < t_end:
             t = t_begin + jitter[r] * _step_ti(t_begin, min_step, max_step, cone_angle)
-            while t < t_end and count < max_samples:
-                dt = _step_ti(t, min_step, max_step, cone_angle)
-                p = o + t * d
-                cell = ti.math.clamp(ti.cast(ti.floor((p - lo) / cell_size), ti.i32), 0, resolution - 1)
-                if occupancy[cell[0], cell[1], cell[2]] != 0:
-                    if ti.static(write):
-                        positions[base + count] = p
-                        depths[base + count] = t
-                        deltas[base + count] = dt
-                    count += 1
-                    t += dt
-                else:
-                    # Jump whole steps to just past the cell's exit, staying on the lattice t_0 + k dt.
-                    skip = _cell_exit_ti(p, d, cell, lo, cell_size)
-                    t += (ti.floor(skip / dt) + 1.0) * dt
+            _, emitted = _march_segment_ti(
+                o,
+                d,
+                t,
+                t_end,
+                max_samples,
+                occupancy,
+                lo,
+                cell_size,
+                resolution,
+                min_step,
+                max_step,
+                cone_angle,
+                positions,
+                depths,
+                deltas,
+                base,
+                write,
+            )
+            count = emitted
         if ti.static(not write):
             ray_offsets[r + 1] = count
 
@@ -218,24 +285,9 @@ def march_rays(
     device = origins.device
     near_t, far_t = (_per_ray(v, rays, name, device) for v, name in ((near, "near"), (far, "far")))
     jitter_t = torch.zeros(rays, device=device) if jitter is None else _per_ray(jitter, rays, "jitter", device)
-    if occupancy.dim() != 3 or occupancy.dtype not in (torch.bool, torch.uint8):
-        raise ValueError(
-            f"occupancy must be a [Gx, Gy, Gz] bool or uint8 grid, got {occupancy.dtype} {tuple(occupancy.shape)}"
-        )
-    aabb = torch.as_tensor(aabb, dtype=torch.float32).cpu()
-    if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
-        raise ValueError(f"aabb must be [2, 3] (lo, hi) with hi > lo on every axis, got {aabb.tolist()}")
-    if cone_angle < 0.0 or not min_step > 0.0:
-        raise ValueError(f"need min_step > 0 and cone_angle >= 0, got min_step={min_step}, cone_angle={cone_angle}")
-    if max_step is None:
-        max_step = 1e10 if cone_angle > 0.0 else min_step
-    if max_step < min_step:
-        raise ValueError(f"max_step ({max_step}) must be at least min_step ({min_step})")
-    if max_samples < 1:
-        raise ValueError(f"max_samples must be at least 1, got {max_samples}")
-    grid = occupancy.to(torch.uint8).contiguous()
-    lo, hi = ti.math.vec3(aabb[0].tolist()), ti.math.vec3(aabb[1].tolist())
-    steps = (float(min_step), float(max_step), float(cone_angle), int(max_samples))
+    grid = _check_occupancy(occupancy)
+    lo, hi = _box(aabb)
+    steps = _steps(min_step, max_step, cone_angle, max_samples)
 
     ray_offsets = torch.zeros(rays + 1, dtype=torch.int32, device=device)
     empty_vec, empty = torch.empty(0, 3, device=device), torch.empty(0, device=device)
@@ -255,9 +307,270 @@ def march_rays(
     return RaySamples(positions, depths, deltas, ray_offsets, ray_indices)
 
 
+# Marching in rounds: each ray's march is resumed where the previous round left it.
+
+
+@ti.kernel
+def _march_start_ti(
+    origins: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    directions: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    near: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    far: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    lo: ti.math.vec3,
+    hi: ti.math.vec3,
+    t: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    t_end: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    count: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):
+    for r in range(origins.shape[0]):
+        t_enter, t_exit = _ray_box_ti(origins[r], directions[r], lo, hi)
+        t[r] = ti.max(t_enter, near[r])
+        t_end[r] = ti.min(t_exit, far[r])
+        count[r] = 0
+
+
+@ti.kernel
+def _march_resume_ti(
+    origins: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    directions: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    rays: ti.types.ndarray(dtype=ti.i64, ndim=1),
+    t: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    t_end: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    count: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    transmittance: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    threshold: ti.f32,
+    occupancy: ti.types.ndarray(dtype=ti.u8, ndim=3),
+    lo: ti.math.vec3,
+    hi: ti.math.vec3,
+    min_step: ti.f32,
+    max_step: ti.f32,
+    cone_angle: ti.f32,
+    max_samples: ti.i32,
+    per_ray: ti.i32,
+    positions: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    depths: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    deltas: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    emitted: ti.types.ndarray(dtype=ti.i32, ndim=1),
+):
+    resolution = ti.Vector([occupancy.shape[0], occupancy.shape[1], occupancy.shape[2]])
+    cell_size = (hi - lo) / ti.cast(resolution, ti.f32)
+    for i in range(rays.shape[0]):
+        r = rays[i]
+        n = 0
+        if transmittance[r] >= threshold:
+            budget = ti.min(per_ray, max_samples - count[r])
+            t_next, got = _march_segment_ti(
+                origins[r],
+                directions[r],
+                t[r],
+                t_end[r],
+                budget,
+                occupancy,
+                lo,
+                cell_size,
+                resolution,
+                min_step,
+                max_step,
+                cone_angle,
+                positions,
+                depths,
+                deltas,
+                i * per_ray,
+                True,
+            )
+            t[r] = t_next
+            count[r] += got
+            n = got
+        emitted[i] = n
+
+
+class MarchState(NamedTuple):
+    """Where each ray's march stands between rounds (:func:`march_start`, :func:`march_resume`).
+
+    Attributes:
+        t: float32 ``[R]`` depth of the next candidate sample, metres (on the ray's step lattice).
+        t_end: float32 ``[R]`` depth where the march ends: the box's exit or ``far``, whichever is nearer.
+        count: int32 ``[R]`` samples emitted so far (at most ``max_samples``).
+    """
+
+    t: torch.Tensor
+    t_end: torch.Tensor
+    count: torch.Tensor
+
+
+class RoundSamples(NamedTuple):
+    """The samples of one round of :func:`march_resume`, ``k`` slots per marched ray.
+
+    Ray ``i`` of the round filled slots ``[i, :counts[i]]``; the other slots hold zeros.
+
+    Attributes:
+        positions: float32 ``[A, k, 3]`` sample positions, metres.
+        depths: float32 ``[A, k]`` ``t_i``, metres.
+        deltas: float32 ``[A, k]`` ``δ_i``, metres.
+        counts: int32 ``[A]`` samples emitted by each ray; fewer than ``k`` means its march is over (or its
+            transmittance was below the threshold: then 0).
+    """
+
+    positions: torch.Tensor
+    depths: torch.Tensor
+    deltas: torch.Tensor
+    counts: torch.Tensor
+
+
+def march_start(
+    origins: torch.Tensor, directions: torch.Tensor, near: torch.Tensor | float, far: torch.Tensor | float, aabb
+) -> MarchState:
+    """The state before the first round of a march resumed in rounds (:func:`march_resume`).
+
+    Args:
+        origins, directions: float32 ``[R, 3]`` rays (unit directions), metres, on the backend device.
+        near, far: ``[R]`` or scalars: the depth interval to sample, metres (clipped to ``aabb``).
+        aabb: ``[2, 3]`` scene box ``(lo, hi)``, metres.
+
+    Returns:
+        :class:`MarchState` with ``t`` at each ray's entry (no jitter: rendering, not training).
+    """
+    rays = _check_rays(origins, directions)
+    device = origins.device
+    near_t, far_t = (_per_ray(v, rays, name, device) for v, name in ((near, "near"), (far, "far")))
+    lo, hi = _box(aabb)
+    state = MarchState(
+        torch.empty(rays, device=device),
+        torch.empty(rays, device=device),
+        torch.empty(rays, dtype=torch.int32, device=device),
+    )
+    if rays > 0:
+        inputs = (origins.detach().contiguous(), directions.detach().contiguous(), near_t, far_t)
+        _march_start_ti(*(backend.taichi_arg(v) for v in inputs), lo, hi, *(backend.taichi_arg(v) for v in state))
+    return state
+
+
+def march_resume(
+    state: MarchState,
+    origins: torch.Tensor,
+    directions: torch.Tensor,
+    rays: torch.Tensor,
+    occupancy: torch.Tensor,
+    aabb,
+    min_step: float,
+    *,
+    samples_per_ray: int,
+    max_step: float | None = None,
+    cone_angle: float = 0.0,
+    max_samples: int = 1024,
+    transmittance: torch.Tensor | None = None,
+    transmittance_threshold: float = 0.0,
+) -> RoundSamples:
+    """One round of a resumable march: rays ``rays`` go on from ``state`` until each has emitted
+    ``samples_per_ray`` more samples (or its march ended); ``state`` is updated in place.
+
+    Every round continues the very loop of :func:`march_rays` from the stored depth, so the rounds of a ray,
+    concatenated, are exactly the samples one :func:`march_rays` call emits (same lattice, same cone steps, same
+    ``max_samples`` cap), bit for bit. Rendering marches a few samples per round, shades and composites them, and
+    stops rays once opaque (instant-NGP's inference loop), instead of marching every sample up front.
+
+    Args:
+        state: from :func:`march_start` over the same ``origins`` and ``directions`` (float32 ``[R, 3]``).
+        rays: int64 ``[A]`` the rays to march this round (distinct indices into ``origins``).
+        occupancy, aabb, min_step, max_step, cone_angle, max_samples: as :func:`march_rays`; ``occupancy``
+            uint8 avoids a conversion per round.
+        samples_per_ray: ``k``, the most samples a ray emits this round.
+        transmittance: float32 ``[R]``, or ``None``: rays whose transmittance is below ``transmittance_threshold``
+            emit nothing (early ray termination, as :func:`composite_forward` stops compositing there).
+
+    Returns:
+        :class:`RoundSamples` with ``k`` slots per ray of ``rays``.
+    """
+    count = _check_rays(origins, directions)
+    device = origins.device
+    if samples_per_ray < 1:
+        raise ValueError(f"samples_per_ray must be at least 1, got {samples_per_ray}")
+    if not (isinstance(rays, torch.Tensor) and rays.dtype == torch.int64 and rays.dim() == 1):
+        raise TypeError("rays must be an int64 tensor [A] of ray indices; convert it with .long()")
+    for name, tensor, dtype in (
+        ("t", state.t, torch.float32),
+        ("t_end", state.t_end, torch.float32),
+        ("count", state.count, torch.int32),
+    ):
+        if tensor.dtype != dtype or tensor.shape != (count,):
+            raise ValueError(
+                f"state.{name} must be {dtype} [R] = [{count}] (from march_start over these rays), "
+                f"got {tensor.dtype} {list(tensor.shape)}"
+            )
+    if transmittance is None:
+        transmittance, transmittance_threshold = torch.ones(count, device=device), 0.0
+    elif transmittance.dtype != torch.float32 or transmittance.shape != (count,):
+        raise ValueError(
+            f"transmittance must be float32 [R] = [{count}], got {transmittance.dtype} {list(transmittance.shape)}"
+        )
+    grid = _check_occupancy(occupancy)
+    lo, hi = _box(aabb)
+    steps = _steps(min_step, max_step, cone_angle, max_samples)
+    marched, k = rays.shape[0], int(samples_per_ray)
+    positions = torch.zeros(marched, k, 3, device=device)
+    depths, deltas = torch.zeros(marched, k, device=device), torch.zeros(marched, k, device=device)
+    emitted = torch.zeros(marched, dtype=torch.int32, device=device)
+    if marched > 0:
+        inputs = (
+            origins.detach().contiguous(),
+            directions.detach().contiguous(),
+            rays.contiguous(),
+            *state,
+            transmittance.contiguous(),
+        )
+        outputs = (positions.view(-1, 3), depths.view(-1), deltas.view(-1), emitted)
+        _march_resume_ti(
+            *(backend.taichi_arg(v) for v in inputs),
+            float(transmittance_threshold),
+            backend.taichi_arg(grid),
+            lo,
+            hi,
+            *steps,
+            k,
+            *(backend.taichi_arg(v) for v in outputs),
+        )
+    return RoundSamples(positions, depths, deltas, emitted)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Compositing
 # ---------------------------------------------------------------------------------------------------
+
+
+@ti.func
+def _composite_ray_ti(
+    sigmas: ti.template(),
+    colors: ti.template(),
+    deltas: ti.template(),
+    depths: ti.template(),
+    start,
+    end,
+    threshold,
+    transmittance,
+    color,
+    opacity,
+    depth,
+    weights: ti.template(),
+    write_weights: ti.template(),
+):
+    """Composite samples ``start:end`` of one ray onto its running sums, front to back, stopping once the
+    transmittance is below ``threshold``; returns ``(transmittance, color, opacity, depth, samples used)``.
+    :func:`composite_forward` starts it from ``(1, 0, 0, 0)``, :func:`composite_accumulate` from the sums of
+    earlier rounds, so compositing a ray in rounds runs the same arithmetic as compositing it at once."""
+    used = 0
+    for i in range(start, end):
+        if transmittance < threshold:
+            break
+        alpha = 1.0 - ti.exp(-sigmas[i] * deltas[i])
+        weight = transmittance * alpha
+        color += weight * colors[i]
+        opacity += weight
+        depth += weight * depths[i]
+        if ti.static(write_weights):
+            weights[i] = weight
+        transmittance *= 1.0 - alpha
+        used += 1
+    return transmittance, color, opacity, depth, used
 
 
 @ti.kernel
@@ -276,22 +589,21 @@ def _composite_forward_ti(
     write_weights: ti.template(),
 ):
     for r in range(ray_offsets.shape[0] - 1):
-        transmittance = 1.0
-        color = ti.math.vec3(0.0)
-        opacity, depth = 0.0, 0.0
-        used = 0
-        for i in range(ray_offsets[r], ray_offsets[r + 1]):
-            if transmittance < threshold:
-                break
-            alpha = 1.0 - ti.exp(-sigmas[i] * deltas[i])
-            weight = transmittance * alpha
-            color += weight * colors[i]
-            opacity += weight
-            depth += weight * depths[i]
-            if ti.static(write_weights):
-                weights[i] = weight
-            transmittance *= 1.0 - alpha
-            used += 1
+        _, color, opacity, depth, used = _composite_ray_ti(
+            sigmas,
+            colors,
+            deltas,
+            depths,
+            ray_offsets[r],
+            ray_offsets[r + 1],
+            threshold,
+            1.0,
+            ti.math.vec3(0.0),
+            0.0,
+            0.0,
+            weights,
+            write_weights,
+        )
         out_color[r] = color
         out_opacity[r] = opacity
         out_depth[r] = depth
@@ -337,6 +649,122 @@ def composite_forward(
             return_weights,
         )
     return color, opacity, depth, used, (weights if return_weights else None)
+
+
+@ti.kernel
+def _composite_accumulate_ti(
+    sigmas: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    colors: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    deltas: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    depths: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    ray_offsets: ti.types.ndarray(dtype=ti.i32, ndim=1),
+    rays: ti.types.ndarray(dtype=ti.i64, ndim=1),
+    threshold: ti.f32,
+    color: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
+    opacity: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    depth: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    transmittance: ti.types.ndarray(dtype=ti.f32, ndim=1),
+    no_weights: ti.types.ndarray(dtype=ti.f32, ndim=1),
+):
+    for i in range(rays.shape[0]):
+        r = rays[i]
+        t_r, c_r, o_r, d_r, _ = _composite_ray_ti(
+            sigmas,
+            colors,
+            deltas,
+            depths,
+            ray_offsets[i],
+            ray_offsets[i + 1],
+            threshold,
+            transmittance[r],
+            color[r],
+            opacity[r],
+            depth[r],
+            no_weights,
+            False,
+        )
+        transmittance[r] = t_r
+        color[r] = c_r
+        opacity[r] = o_r
+        depth[r] = d_r
+
+
+class CompositeState(NamedTuple):
+    """Running compositing sums of rays composited in rounds (:func:`composite_start`, :func:`composite_accumulate`).
+
+    Attributes:
+        color: float32 ``[R, 3]`` ``Σ w_i c_i`` (premultiplied colour).
+        opacity: float32 ``[R]`` ``Σ w_i``.
+        depth: float32 ``[R]`` ``Σ w_i t_i``, metres.
+        transmittance: float32 ``[R]`` ``T`` after the samples composited so far.
+    """
+
+    color: torch.Tensor
+    opacity: torch.Tensor
+    depth: torch.Tensor
+    transmittance: torch.Tensor
+
+
+def composite_start(rays: int, device: torch.device | str) -> CompositeState:
+    """Sums of ``rays`` rays before any sample: no colour, opacity or depth, transmittance 1."""
+    return CompositeState(
+        torch.zeros(rays, 3, device=device),
+        torch.zeros(rays, device=device),
+        torch.zeros(rays, device=device),
+        torch.ones(rays, device=device),
+    )
+
+
+def composite_accumulate(
+    state: CompositeState,
+    rays: torch.Tensor,
+    sigmas: torch.Tensor,
+    colors: torch.Tensor,
+    deltas: torch.Tensor,
+    depths: torch.Tensor,
+    ray_offsets: torch.Tensor,
+    *,
+    transmittance_threshold: float = DEFAULT_TRANSMITTANCE_THRESHOLD,
+) -> None:
+    """Composite the next packed samples of rays ``rays`` onto their running sums in ``state`` (in place; forward
+    only, for rendering).
+
+    Each ray carries on exactly where its earlier rounds stopped, with :func:`composite_forward`'s arithmetic, so
+    compositing a ray's samples in consecutive rounds gives the very sums one :func:`composite_forward` call over
+    all of them gives, early termination included (a ray whose transmittance is below the threshold takes no more
+    samples).
+
+    Args:
+        state: from :func:`composite_start` (``R`` rays).
+        rays: int64 ``[A]`` distinct indices into the state of the rays composited here.
+        sigmas, colors, deltas, depths: ``[S]``, ``[S, 3]``, ``[S]``, ``[S]`` packed samples (as
+            :func:`composite_forward`).
+        ray_offsets: int32 ``[A + 1]``: ray ``rays[i]`` owns samples ``ray_offsets[i]:ray_offsets[i + 1]``.
+        transmittance_threshold: a ray stops at the first sample with ``T`` below this.
+    """
+    marched = _check_samples(sigmas, colors, deltas, depths, ray_offsets)
+    if not (isinstance(rays, torch.Tensor) and rays.dtype == torch.int64 and rays.shape == (marched,)):
+        raise ValueError(
+            f"rays must be int64 [A] = [{marched}] (one per CSR row), got "
+            f"{getattr(rays, 'dtype', None)} {list(getattr(rays, 'shape', []))}"
+        )
+    total = state.opacity.shape[0]
+    for name, tensor, shape in (
+        ("color", state.color, (total, 3)),
+        ("opacity", state.opacity, (total,)),
+        ("depth", state.depth, (total,)),
+        ("transmittance", state.transmittance, (total,)),
+    ):
+        if tensor.dtype != torch.float32 or tensor.shape != shape or not tensor.is_contiguous():
+            raise ValueError(f"state.{name} must be contiguous float32 {list(shape)}; build it with composite_start")
+    if marched > 0:
+        _composite_accumulate_ti(
+            *(backend.taichi_arg(t.detach().contiguous()) for t in (sigmas, colors, deltas, depths, ray_offsets)),
+            backend.taichi_arg(rays.contiguous()),
+            float(transmittance_threshold),
+            *(backend.taichi_arg(t) for t in state),
+            torch.empty(0, device=sigmas.device),
+        )
 
 
 @ti.kernel
@@ -429,7 +857,12 @@ class VolumeRenderFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, sigmas, colors, deltas, depths, ray_offsets, threshold, return_weights):
         color, opacity, depth, used, weights = composite_forward(
-            sigmas, colors, deltas, depths, ray_offsets, transmittance_threshold=threshold,
+            sigmas,
+            colors,
+            deltas,
+            depths,
+            ray_offsets,
+            transmittance_threshold=threshold,
             return_weights=return_weights,
         )
         if weights is None:
@@ -490,6 +923,50 @@ def _check_rays(origins: torch.Tensor, directions: torch.Tensor) -> int:
     if origins.shape != directions.shape:
         raise ValueError(f"origins {tuple(origins.shape)} and directions {tuple(directions.shape)} differ in shape")
     return origins.shape[0]
+
+
+def _check_occupancy(occupancy: torch.Tensor) -> torch.Tensor:
+    """The grid as contiguous uint8 (a no-op for a uint8 grid)."""
+    if (
+        not isinstance(occupancy, torch.Tensor)
+        or occupancy.dim() != 3
+        or occupancy.dtype not in (torch.bool, torch.uint8)
+    ):
+        raise ValueError(
+            f"occupancy must be a [Gx, Gy, Gz] bool or uint8 grid, got {getattr(occupancy, 'dtype', None)} "
+            f"{tuple(getattr(occupancy, 'shape', ()))}"
+        )
+    return occupancy.to(torch.uint8).contiguous()
+
+
+def _box(aabb) -> tuple:
+    """``(lo, hi)`` of a ``[2, 3]`` box as Taichi vectors (a CPU box costs no device transfer)."""
+    aabb = torch.as_tensor(aabb, dtype=torch.float32).cpu()
+    if aabb.shape != (2, 3):
+        raise ValueError(f"aabb must be [2, 3] (lo, hi), got shape {tuple(aabb.shape)}")
+    return _box_vectors(tuple(aabb.flatten().tolist()))
+
+
+@functools.lru_cache(maxsize=64)
+def _box_vectors(corners: tuple) -> tuple:
+    """Taichi vectors of a box's corners, cached: building them costs more than a round's launch of a kernel."""
+    lo, hi = corners[:3], corners[3:]
+    if not all(h > l for l, h in zip(lo, hi, strict=True)):
+        raise ValueError(f"aabb must be [2, 3] (lo, hi) with hi > lo on every axis, got {[list(lo), list(hi)]}")
+    return ti.math.vec3(lo), ti.math.vec3(hi)
+
+
+def _steps(min_step: float, max_step: float | None, cone_angle: float, max_samples: int) -> tuple:
+    """``(min_step, max_step, cone_angle, max_samples)`` checked, with the default ``max_step`` filled in."""
+    if cone_angle < 0.0 or not min_step > 0.0:
+        raise ValueError(f"need min_step > 0 and cone_angle >= 0, got min_step={min_step}, cone_angle={cone_angle}")
+    if max_step is None:
+        max_step = 1e10 if cone_angle > 0.0 else min_step
+    if max_step < min_step:
+        raise ValueError(f"max_step ({max_step}) must be at least min_step ({min_step})")
+    if max_samples < 1:
+        raise ValueError(f"max_samples must be at least 1, got {max_samples}")
+    return float(min_step), float(max_step), float(cone_angle), int(max_samples)
 
 
 def _per_ray(value, rays: int, name: str, device: torch.device) -> torch.Tensor:

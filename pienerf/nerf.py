@@ -225,7 +225,8 @@ class NGPField(torch.nn.Module):
             features = self.encoding(unit.contiguous())
         h = self.density_mlp(features)
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
-        sigma = torch.where(inside, truncated_exp(h[:, 0]), 0.0)
+        # At least float32: under float16 autocast the MLP's outputs are float16, whose exp overflows at σ ≈ 6.5e4.
+        sigma = torch.where(inside, truncated_exp(h[:, 0].to(torch.promote_types(h.dtype, torch.float32))), 0.0)
         return sigma, h
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
@@ -235,8 +236,20 @@ class NGPField(torch.nn.Module):
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density ``σ [N]`` (per metre) and colour ``rgb [N, 3]`` in [0, 1] at points ``x [N, 3]`` seen along
         unit directions ``d [N, 3]``."""
+        return self.radiance(x, self.encode_directions(d))
+
+    def encode_directions(self, d: torch.Tensor) -> torch.Tensor:
+        """The colour MLP's view input for unit directions ``d [N, 3]``: spherical harmonics ``[N, sh_degree²]``.
+
+        A renderer encodes each camera ray once and hands every sample of the ray its row (:meth:`radiance`),
+        instead of evaluating the ~30 products of the harmonics per sample.
+        """
+        return spherical_harmonics(d, self.config.sh_degree)
+
+    def radiance(self, x: torch.Tensor, encoded_directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` with the directions already encoded by :meth:`encode_directions` (``[N, sh_degree²]``)."""
         sigma, h = self._density_outputs(x)
-        rgb = self.color_mlp(torch.cat([h, spherical_harmonics(d, self.config.sh_degree)], dim=-1))
+        rgb = self.color_mlp(torch.cat([h, encoded_directions.to(h.dtype)], dim=-1))
         return sigma, rgb
 
 
@@ -387,7 +400,11 @@ def render_rays(
         )
         sigma, rgb = field(samples.positions, directions[a:b][samples.ray_indices])
         out = composite(
-            sigma.contiguous(), rgb.contiguous(), samples.deltas, samples.depths, samples.ray_offsets,
+            sigma.contiguous(),
+            rgb.contiguous(),
+            samples.deltas,
+            samples.depths,
+            samples.ray_offsets,
             transmittance_threshold=c.transmittance_threshold,
         )
         opacity = out["opacity"]
@@ -451,4 +468,3 @@ def _check_points(x: torch.Tensor) -> None:
         raise TypeError(f"points must be a floating-point torch.Tensor, got {getattr(x, 'dtype', type(x).__name__)}")
     if x.dim() != 2 or x.shape[1] != 3:
         raise ValueError(f"points must have shape [N, 3], got {tuple(x.shape)}")
-

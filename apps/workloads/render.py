@@ -2,22 +2,38 @@
 
 * ``warp_rays``: quadratic warping (Eq. 19–21) of packed samples, each with its 3 nearest IPs, by the Taichi
   kernel against the torch reference (the same Newton iteration, vectorised).
-* ``render_deformed``: frames per second of :class:`pienerf.render.DeformedRenderer` on the teapot (3 cm grid
-  particles, 24 kernels) under a smooth random deformation, at 64² (smoke), 800² on CUDA / 200² on the CPU
-  (paper: lego-sized frames) and 1600² / 400² (large). The field is an untrained
-  :class:`pienerf.nerf.NGPField` (instant-NGP's configuration, so each query costs what a trained one does)
-  marched through the teapot's occupancy grid, so the frame has the teapot's samples. Timed: the frame state
-  (deformed IPs, forward-warped occupancy), marching, kNN, warping, NeRF queries and compositing. The
-  reference swaps the warp for :func:`kernels.reference.warp_rays.warp_to_rest_torch` and the compositing for
+* ``render_deformed``: frames per second of :class:`pienerf.render.DeformedRenderer` rendering a trained NeRF under
+  a smooth random deformation (q with 2 cm Gaussian entries), at 64² (smoke), 200² on the CPU / 800² on CUDA
+  (paper: lego-sized frames) and 400² / 1600² (large). The scene is the teapot's NeRF
+  (:func:`pienerf.nerf_backend.scene_nerf`, the default fit: 48 views of 64², 1000 steps, ~4 min on this
+  project's CPU the first time, then cached; at smoke size a short fit of 12 views of 32² and 100 steps, ~20 s,
+  whose NeRF is fuzzier but renders the same teapot) with the teapot's 3 cm grid body and 24 kernels; at paper size
+  on CUDA, when ``../shared/data/nerf_synthetic_lego`` exists beside the repository, the lego's NeRF
+  (:func:`pienerf.nerf_backend.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
+  solid the NeRF shows (:class:`pienerf.nerf_backend.NerfSceneDensity`) and 32 kernels, as the lego scenario,
+  seen from 4.2 m. A trained NeRF matters: early ray termination only saves samples behind real opacity. Timed:
+  the frame state (deformed IPs, forward-warped occupancy) and the rounds of march, kNN, warp, NeRF queries and
+  compositing. Recorded besides: ``samples_marched``, ``samples_queried`` and ``rounds`` of a frame, and
+  ``samples_full_march``, what one full march of every ray emits (what a renderer without early termination
+  warps). The reference renders without early termination, in torch: a full march per 4096 rays, every sample
+  warped by
+  :func:`kernels.reference.warp_rays.warp_to_rest_torch`, composited by
   :func:`kernels.reference.volume_render.composite_torch`.
 
-Measured on this project's shared 2-core CPU under load from other jobs (load average ~6): ``warp_rays``
-paper (1M samples) 168 ms, 6.2 Msamples/s, 161x the reference; ``render_deformed`` paper (200², 1.03M samples)
-8.9 s per frame against 55 s, most of it the NGP queries (hash grid + MLPs) of the samples; the frame state
-(forward-warped occupancy, IP hash) costs ~0.3 s of it. CUDA not yet measured.
+Measured on this project's shared 2-core CPU under load from other jobs: ``warp_rays`` paper (1M samples) 168 ms,
+6.2 Msamples/s, 161x the reference (load average ~6). ``render_deformed`` (load average ~3): smoke 308 ms per frame
+(81k samples marched where a full march has 86k, 66k queried, 9 rounds; reference 6.5 s), paper 1.82 s (707k of
+746k marched, 592k queried, 9 rounds; reference 25.9 s). The same frames timed alternately in one process against
+the renderer that marched, warped and queried every sample per 4096 rays: 0.58 s and 6.1 s for it, 0.21 s and
+1.49 s for it with torch on one thread, 0.22 s and 1.44 s here; so on this CPU nearly all the gain is the torch
+threading, as the fitted teapot's NeRF is too translucent for early termination to save much (5 % of the samples).
+The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² frame cost launches and syncs; CUDA not
+yet measured.
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import torch
 
@@ -29,6 +45,7 @@ from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import march_rays
 from kernels.warp_rays import warp_to_rest
 
+_LEGO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nerf_synthetic_lego"
 _WARP_SAMPLES = {"smoke": 1 << 16, "paper": 1 << 20, "large": 1 << 23}
 _RESOLUTION = {  # pixels per image side, by size and device
     "smoke": {"cpu": 64, "cuda": 64},
@@ -68,56 +85,102 @@ def bench_warp_rays(device: str, size: str) -> Case:
     )
 
 
-def _teapot_renderer():
+def _deformed(field, grid, particles, kernel_count: int):
+    """A renderer of ``field`` warped by a Q-GMLS body on ``particles``, and a smooth random q."""
     from pienerf.model import DiscretizationConfig, QGMLSModel
-    from pienerf.nerf import NGPField
-    from pienerf.render import DeformedRenderer, MeshAlbedoField
-    from pienerf.sampling import grid_sample
-    from pienerf.scenes import scene_density
+    from pienerf.render import DeformedRenderer
 
-    particles = grid_sample(scene_density("teapot"), 0.03)
-    model = QGMLSModel.from_particles(particles, DiscretizationConfig(kernel_count=24))
-    geometry = MeshAlbedoField("teapot")
-    torch.manual_seed(0)
-    field = NGPField(aabb=geometry.aabb.cpu()).to(backend.torch_device())
-    renderer = DeformedRenderer(field, geometry.occupancy_grid(128), model)
+    model = QGMLSModel.from_particles(particles, DiscretizationConfig(kernel_count=kernel_count))
+    renderer = DeformedRenderer(field, grid, model)
     generator = torch.Generator().manual_seed(0)
     q = 0.02 * torch.randn(model.shape_count, 3, generator=generator, dtype=torch.float64)
     return renderer, q.to(model.device)
 
 
+def _teapot_scene(size: str, resolution: int):
+    """The teapot's NeRF (a short fit at smoke size), its 3 cm grid body with 24 kernels, and the first view."""
+    import dataclasses
+
+    from pienerf.nerf_backend import NerfFit, scene_nerf
+    from pienerf.sampling import grid_sample
+    from pienerf.scenes import scene_cameras, scene_density
+
+    fit, fit_name = NerfFit(), "default"
+    if size == "smoke":
+        fit = dataclasses.replace(fit, views=12, resolution=32, train=dataclasses.replace(fit.train, steps=100))
+        fit_name = "12 views of 32², 100 steps"
+    trained = scene_nerf("teapot", fit)
+    renderer, q = _deformed(trained.field, trained.grid, grid_sample(scene_density("teapot"), 0.03), 24)
+    rays = scene_cameras("teapot", views=1, resolution=resolution).rays(0)
+    return renderer, q, rays, {"scene": "teapot", "nerf_fit": fit_name}
+
+
+def _lego_scene(resolution: int):
+    """The lego's NeRF (the default fit), a body Poisson-disk sampled from its solid (4 cm, 32 kernels, as the lego
+    scenario), and a view from 4.2 m at 20° elevation."""
+    from pienerf.nerf_backend import NerfFit, NerfSceneDensity, dataset_nerf
+    from pienerf.sampling import poisson_disk_sample
+    from pienerf.session import orbit_cameras
+
+    trained = dataset_nerf(_LEGO, NerfFit())
+    solid = NerfSceneDensity(trained.field, trained.grid, resolution=96)
+    particles = poisson_disk_sample(solid, 0.04, seed=0)
+    renderer, q = _deformed(trained.field, trained.grid, particles, 32)
+    lo, hi = solid.bounds
+    cameras = orbit_cameras((0.5 * (lo + hi)).tolist(), 4.2, [30.0], 20.0, resolution, resolution)
+    return renderer, q, cameras.rays(0), {"scene": "lego", "nerf_fit": "default"}
+
+
 def _render_reference(renderer, q, origins, directions):
-    """The renderer's frame with the torch warp and torch compositing."""
+    """The frame without early termination, in torch: every sample of a full march warped by the torch warp, queried
+    and composited by ``composite_torch``."""
     frame = renderer.frame(q)
     c = renderer.field.config
     colors = []
     for a in range(0, origins.shape[0], renderer.chunk):
         b = min(a + renderer.chunk, origins.shape[0])
-        samples = march_rays(origins[a:b], directions[a:b], 0.0, 1e10, frame.occupancy, frame.aabb.cpu(),
-                             renderer.min_step, max_samples=c.max_samples)
+        samples = march_rays(
+            origins[a:b],
+            directions[a:b],
+            0.0,
+            1e10,
+            frame.occupancy,
+            frame.aabb.cpu(),
+            renderer.min_step,
+            max_samples=c.max_samples,
+        )
         neighbours, distances = frame.ip_hash.knn(samples.positions, 3, max_radius=2.0 * float(renderer.cutoff.max()))
         rest, valid, _, _ = warp_to_rest_torch(
-            samples.positions, neighbours, distances, frame.ip_deformed, frame.ip_displacement, frame.F,
-            frame.grad_F, renderer.cutoff,
+            samples.positions,
+            neighbours,
+            distances,
+            frame.ip_deformed,
+            frame.ip_displacement,
+            frame.F,
+            frame.grad_F,
+            renderer.cutoff,
         )
         keep = valid & renderer.grid.is_occupied(rest)
         sigma = torch.zeros(rest.shape[0], device=rest.device)
         rgb = torch.zeros(rest.shape[0], 3, device=rest.device)
         if bool(keep.any()):
             sigma[keep], rgb[keep] = renderer.field(rest[keep], directions[a:b][samples.ray_indices][keep])
-        colors.append(composite_torch(sigma, rgb, samples.deltas, samples.depths, samples.ray_offsets,
-                                      c.transmittance_threshold)[0])
+        colors.append(
+            composite_torch(sigma, rgb, samples.deltas, samples.depths, samples.ray_offsets, c.transmittance_threshold)[
+                0
+            ]
+        )
     return torch.cat(colors)
 
 
 @workload("render_deformed", "deformed NeRF frames: warped occupancy, march, kNN, quadratic warp, NGP, composite")
 def bench_render_deformed(device: str, size: str) -> Case:
-    from pienerf.scenes import scene_cameras
-
     resolution = _RESOLUTION[size][device]
-    renderer, q = _teapot_renderer()
-    cameras = scene_cameras("teapot", views=1, resolution=resolution)
-    origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(0))
+    if size == "paper" and device == "cuda" and _LEGO.is_dir():
+        renderer, q, rays, scene = _lego_scene(resolution)
+    else:
+        renderer, q, rays, scene = _teapot_scene(size, resolution)
+    origins, directions = (t.float().to(backend.torch_device()).contiguous() for t in rays)
 
     def run():
         with torch.no_grad():
@@ -127,15 +190,30 @@ def bench_render_deformed(device: str, size: str) -> Case:
         with torch.no_grad():
             return _render_reference(renderer, q, origins, directions)
 
+    run()
+    stats = renderer.stats
     frame = renderer.frame(q)
-    samples = march_rays(origins, directions, 0.0, 1e10, frame.occupancy, frame.aabb.cpu(), renderer.min_step)
+    c = renderer.field.config
+    full = march_rays(
+        origins, directions, 0.0, 1e10, frame.occupancy, frame.aabb.cpu(), renderer.min_step, max_samples=c.max_samples
+    )
     return Case(
         run=run,
         reference=reference,
-        params={"resolution": resolution, "rays": resolution * resolution, "ips": renderer.model.ips.count,
-                "field": "untrained NGPField", "scene": "teapot"},
+        params={
+            "resolution": resolution,
+            "rays": resolution * resolution,
+            "ips": renderer.model.ips.count,
+            "field": "trained NGPField",
+            **scene,
+        },
         work=1.0,
         unit="frames/s",
-        reference_name="torch warp + composite_torch",
-        extra={"samples_per_frame": int(samples.positions.shape[0])},
+        reference_name="torch warp + composite_torch, full march",
+        extra={
+            "samples_marched": stats.samples_marched,
+            "samples_queried": stats.samples_queried,
+            "rounds": stats.rounds,
+            "samples_full_march": int(full.positions.shape[0]),
+        },
     )

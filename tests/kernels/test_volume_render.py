@@ -8,9 +8,13 @@ from kernels.reference.volume_render import composite_torch, march_rays_torch
 from kernels.volume_render import (
     DEFAULT_TRANSMITTANCE_THRESHOLD,
     composite,
+    composite_accumulate,
     composite_backward,
     composite_forward,
+    composite_start,
     march_rays,
+    march_resume,
+    march_start,
 )
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -75,7 +79,10 @@ def test_early_termination_stops_where_transmittance_drops_below_threshold(devic
         # Compositing only the samples before termination gives the same pixel.
         head = slice(a, a + expected_used)
         truncated = composite_forward(
-            sigmas[head], colors[head], deltas[head], depths[head],
+            sigmas[head],
+            colors[head],
+            deltas[head],
+            depths[head],
             torch.tensor([0, expected_used], dtype=torch.int32, device=sigmas.device),
         )
         torch.testing.assert_close(truncated[0][0], color[ray], rtol=0, atol=0)
@@ -148,9 +155,10 @@ def test_march_matches_reference(device, min_step, cone_angle, max_step):
     torch.testing.assert_close(samples.depths, depths, rtol=0, atol=1e-5)
     torch.testing.assert_close(samples.deltas, deltas, rtol=0, atol=1e-6)
     assert int(samples.counts.max()) == 48, "some rays must reach max_samples"
-    assert torch.equal(samples.ray_indices, torch.repeat_interleave(torch.arange(1500), samples.counts.long().cpu()).to(
-        samples.ray_indices.device
-    ))
+    assert torch.equal(
+        samples.ray_indices,
+        torch.repeat_interleave(torch.arange(1500), samples.counts.long().cpu()).to(samples.ray_indices.device),
+    )
     # Every emitted sample lies in an occupied cell.
     cells = ((samples.positions - AABB[0].to(positions)) / (2.0 / 16)).floor().long().clamp(0, 15)
     assert bool(grid[cells[:, 0], cells[:, 1], cells[:, 2]].all())
@@ -188,6 +196,108 @@ def test_march_skips_empty_space(device):
     torch.testing.assert_close(sparse.depths, full.depths[inside], rtol=0, atol=1e-5)
 
 
+def _march_in_rounds(origins, directions, near, far, grid, min_step, schedule, **kwargs):
+    """Samples of every ray from rounds of ``march_resume`` (``schedule``: samples per ray of each round; the rays
+    of a round are those whose previous round filled all its slots), gathered per ray in order."""
+    state = march_start(origins, directions, near, far, AABB)
+    rays = torch.arange(origins.shape[0], device=origins.device)
+    per_ray = [[] for _ in range(origins.shape[0])]
+    rounds = 0
+    while rays.numel() > 0:
+        k = schedule[min(rounds, len(schedule) - 1)]
+        batch = march_resume(state, origins, directions, rays, grid, AABB, min_step, samples_per_ray=k, **kwargs)
+        for i, ray in enumerate(rays.tolist()):
+            n = int(batch.counts[i])
+            per_ray[ray].append((batch.positions[i, :n], batch.depths[i, :n], batch.deltas[i, :n]))
+        rays = rays[batch.counts == k]
+        rounds += 1
+    gathered = [[torch.cat(parts) for parts in zip(*chunks, strict=True)] for chunks in per_ray]
+    return gathered, state, rounds
+
+
+@pytest.mark.parametrize(
+    ("min_step", "cone_angle", "max_step"), [(0.02, 0.0, None), (0.005, 0.01, 0.04)], ids=["constant", "cone"]
+)
+def test_march_in_rounds_emits_exactly_the_full_march(device, min_step, cone_angle, max_step):
+    """Resuming each ray where its last round stopped reproduces the single march bit for bit (same lattice, same
+    cone steps, same max_samples cap), whatever the samples per round."""
+    origins, directions, _ = _rays(400, seed=11)
+    grid = _grid(16, 0.4)
+    kwargs = dict(max_step=max_step, cone_angle=cone_angle, max_samples=48)
+    full = march_rays(origins, directions, 0.5, 6.0, grid, AABB, min_step, **kwargs)
+    assert int(full.counts.max()) == 48, "some rays must reach max_samples"
+    for schedule in ([1, 2, 4, 8], [5], [64]):
+        per_ray, state, rounds = _march_in_rounds(
+            origins, directions, 0.5, 6.0, grid.to(torch.uint8), min_step, schedule, **kwargs
+        )
+        assert rounds > 1 or schedule == [64]
+        assert torch.equal(state.count, full.counts), "every ray emits as many samples as the full march"
+        for ray in range(origins.shape[0]):
+            a, b = int(full.ray_offsets[ray]), int(full.ray_offsets[ray + 1])
+            positions, depths, deltas = per_ray[ray]
+            assert torch.equal(positions, full.positions[a:b]), f"ray {ray}, schedule {schedule}"
+            assert torch.equal(depths, full.depths[a:b]) and torch.equal(deltas, full.deltas[a:b])
+
+
+def test_march_resume_skips_rays_below_the_transmittance_threshold(device):
+    origins, directions, _ = _rays(64, seed=12)
+    grid = _grid(8, 1.1)  # every cell occupied: every ray that meets the box emits samples
+    state = march_start(origins, directions, 0.0, 10.0, AABB)
+    transmittance = torch.ones(64, device=origins.device)
+    transmittance[::2] = 1e-5
+    rays = torch.arange(64, device=origins.device)
+    batch = march_resume(
+        state,
+        origins,
+        directions,
+        rays,
+        grid,
+        AABB,
+        0.01,
+        samples_per_ray=4,
+        transmittance=transmittance,
+        transmittance_threshold=1e-4,
+    )
+    assert bool((batch.counts[::2] == 0).all()) and bool((state.count[::2] == 0).all()), "terminated rays stay put"
+    assert bool((batch.counts[1::2] == 4).all()) and bool((state.count[1::2] == 4).all())
+
+
+def test_composite_in_rounds_equals_composite_forward(device):
+    """Compositing each ray's samples over several rounds gives the sums of one pass, early termination included."""
+    counts = [5, 0, 17, 1, 60, 60, 40, 3]
+    sigmas, colors, deltas, depths, offsets = _packed(counts, seed=6, sigma_scale=300.0)
+    color, opacity, depth, used, _ = composite_forward(sigmas, colors, deltas, depths, offsets)
+    assert bool((used < torch.tensor(counts, device=used.device, dtype=used.dtype)).any()), "some rays must stop"
+    state = composite_start(len(counts), sigmas.device)
+    done = [0] * len(counts)
+    schedule = (1, 2, 3, 7, 64)
+    for round_, k in enumerate(schedule):
+        rays, parts = [], []
+        for ray, n in enumerate(counts):
+            take = min(k, n - done[ray])
+            # Rays sit out some rounds (as a renderer's rays drop out); the last round takes what is left.
+            if take > 0 and ((ray + round_) % 2 == 0 or round_ == len(schedule) - 1):
+                start = int(offsets[ray]) + done[ray]
+                rays.append(ray)
+                parts.append(torch.arange(start, start + take))
+                done[ray] += take
+        index = torch.cat(parts).to(sigmas.device)
+        round_offsets = torch.tensor([0, *torch.tensor([len(p) for p in parts]).cumsum(0).tolist()], dtype=torch.int32)
+        composite_accumulate(
+            state,
+            torch.tensor(rays, device=sigmas.device),
+            sigmas[index],
+            colors[index],
+            deltas[index],
+            depths[index],
+            round_offsets.to(sigmas.device),
+        )
+    assert done == counts
+    assert torch.equal(state.color, color) and torch.equal(state.opacity, opacity) and torch.equal(state.depth, depth)
+    expected = composite_torch(sigmas, colors, deltas, depths, offsets)
+    torch.testing.assert_close(state.color, expected[0], rtol=1e-5, atol=1e-6)
+
+
 def test_bad_inputs_raise_clear_errors(device):
     sigmas, colors, deltas, depths, offsets = _packed([3, 2])
     with pytest.raises(TypeError, match="float32"):
@@ -209,3 +319,14 @@ def test_bad_inputs_raise_clear_errors(device):
         march_rays(origins, directions, 0.0, 1.0, grid, AABB, 0.0)
     with pytest.raises(ValueError, match="near"):
         march_rays(origins, directions, torch.zeros(3), 1.0, grid, AABB, 0.1)
+    state = march_start(origins, directions, 0.0, 1.0, AABB)
+    rays = torch.arange(4, device=origins.device)
+    with pytest.raises(ValueError, match="samples_per_ray"):
+        march_resume(state, origins, directions, rays, grid, AABB, 0.1, samples_per_ray=0)
+    with pytest.raises(TypeError, match="int64"):
+        march_resume(state, origins, directions, rays.int(), grid, AABB, 0.1, samples_per_ray=2)
+    with pytest.raises(ValueError, match="march_start"):
+        march_resume(state, origins[:3], directions[:3], rays[:3], grid, AABB, 0.1, samples_per_ray=2)
+    sums = composite_start(2, sigmas.device)
+    with pytest.raises(ValueError, match="one per CSR row"):
+        composite_accumulate(sums, torch.arange(3, device=sigmas.device), sigmas, colors, deltas, depths, offsets)

@@ -14,10 +14,12 @@ import torch
 
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
+from kernels.volume_render import composite_forward, march_rays
+from kernels.warp_rays import warp_to_rest
 from pienerf.data import Cameras
 from pienerf.materials import Material
 from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.render import DeformedRenderer, GroundPlane, MeshAlbedoField
+from pienerf.render import DeformedRenderer, GroundPlane, MeshAlbedoField, splat_occupancy
 from pienerf.sampling import grid_sample
 from pienerf.scenes import scene_cameras, scene_density
 from pienerf.solver import ControlQGMLS, PointTargets, SolverConfig, SolverQGMLS
@@ -87,6 +89,120 @@ def test_zero_deformation_renders_the_undeformed_nerf(teapot):
         warped = renderer.render(q, cameras, view=1, mode=mode, resolution=48)
         for key in ("rgb", "alpha", "depth"):
             assert torch.equal(warped[key], rest[key]), f"{mode} warp at q = 0 changed {key}"
+
+
+def _full_march(renderer: DeformedRenderer, q: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor):
+    """The straightforward render: one full march through the deformed grid, every sample warped and shaded, one
+    composite. Returns premultiplied colour, opacity, ``Σ w t`` and the number of samples marched."""
+    frame = renderer.frame(q)
+    c = renderer.field.config
+    samples = march_rays(
+        origins, directions, 0.0, 1e10, frame.occupancy, frame.aabb, renderer.min_step, max_samples=c.max_samples
+    )
+    neighbours, distances = frame.ip_hash.knn(samples.positions, 3, max_radius=2.0 * float(renderer.cutoff.max()))
+    warped = warp_to_rest(
+        samples.positions,
+        neighbours,
+        distances,
+        frame.ip_deformed,
+        frame.ip_displacement,
+        frame.F,
+        frame.grad_F,
+        renderer.cutoff,
+    )
+    keep = warped.valid & renderer.grid.is_occupied(warped.rest)
+    sigma = torch.zeros(keep.shape[0], device=keep.device)
+    rgb = torch.zeros(keep.shape[0], 3, device=keep.device)
+    sigma[keep], rgb[keep] = renderer.field(warped.rest[keep], directions[samples.ray_indices][keep])
+    color, opacity, depth, _, _ = composite_forward(
+        sigma,
+        rgb,
+        samples.deltas,
+        samples.depths,
+        samples.ray_offsets,
+        transmittance_threshold=c.transmittance_threshold,
+    )
+    return color, opacity, depth, samples.positions.shape[0]
+
+
+def test_rendering_in_rounds_matches_one_full_march(teapot):
+    """Rounds with early termination give the image of one full march and composite, for fewer samples; so do
+    other round sizes and memory budgets."""
+    model, field, renderer, q = teapot
+    cameras = scene_cameras("teapot", views=4, resolution=40)
+    origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(1))
+    color, opacity, depth, marched = _full_march(renderer, q, origins, directions)
+    assert float(opacity.mean()) > 0.1, "the body must cover part of the view"
+    black = (0.0, 0.0, 0.0)
+    out = renderer.render(q, rays=(origins, directions), background=black)
+    stats = renderer.stats
+    torch.testing.assert_close(out["rgb"], color, rtol=0.0, atol=1e-6)
+    torch.testing.assert_close(out["alpha"], opacity, rtol=0.0, atol=1e-6)
+    expected_depth = torch.where(opacity > 1e-6, depth / opacity.clamp_min(1e-6), 0.0)
+    torch.testing.assert_close(out["depth"], expected_depth, rtol=0.0, atol=1e-5)
+    assert 1 < stats.rounds < 20
+    assert stats.samples_queried <= stats.samples_marched < 0.9 * marched, f"{stats} against {marched} marched"
+
+    variants = (
+        DeformedRenderer(field, renderer.grid, model, steps_per_round=3, round_samples=300),
+        DeformedRenderer(field, renderer.grid, model, steps_per_round=128),
+        DeformedRenderer(field, renderer.grid, model, first_round_steps=8, steps_per_round=128, round_samples=4096),
+    )
+    for variant in variants:
+        again = variant.render(q, rays=(origins, directions), background=black)
+        for key in ("rgb", "alpha", "depth"):
+            torch.testing.assert_close(again[key], out[key], rtol=0.0, atol=1e-6)
+    assert variants[0].stats.rounds > stats.rounds, "a small budget takes more rounds"
+    assert variants[1].stats.rounds <= stats.rounds
+
+
+def test_splat_marks_every_cell_the_moved_boxes_overlap(device):
+    """The difference-array splat marks exactly the cells a per-cell enumeration of each moved cell's box marks
+    (at most 3 per axis, clipped to the grid), under a random smooth map, with boxes sticking out of the grid."""
+    generator = torch.Generator().manual_seed(3)
+    cell_size = torch.tensor([0.05, 0.04, 0.06], dtype=torch.float64)
+    cells_lo = torch.randint(-2, 12, (300, 3), generator=generator).double() * cell_size
+    ips = 7
+    ip_rest = torch.rand(ips, 3, generator=generator, dtype=torch.float64) * 0.5
+    displacement = 0.05 * torch.randn(ips, 3, generator=generator, dtype=torch.float64)
+    F = torch.eye(3, dtype=torch.float64) + 0.3 * torch.randn(ips, 3, 3, generator=generator, dtype=torch.float64)
+    grad_F = 2.0 * torch.randn(ips, 3, 3, 3, generator=generator, dtype=torch.float64)
+    nearest = torch.randint(ips, (300,), generator=generator)
+    aabb = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.4, 0.6]], dtype=torch.float64)
+    shape = (10, 10, 10)
+    inputs = (cells_lo, cell_size, nearest, ip_rest, displacement, F, grad_F, aabb)
+    grid = splat_occupancy(*(t.to(backend.torch_device()) for t in inputs), shape).cpu()
+
+    expected = torch.zeros(shape, dtype=torch.bool)
+    deformed_cell = (aabb[1] - aabb[0]) / torch.tensor(shape)
+    for c in range(300):
+        k = int(nearest[c])
+        corners = [
+            cells_lo[c] + torch.tensor([i, j, m], dtype=torch.float64) * cell_size
+            for i in (0, 1)
+            for j in (0, 1)
+            for m in (0, 1)
+        ]
+        moved = []
+        for x in corners:
+            d = x - ip_rest[k]
+            moved.append(
+                x
+                + displacement[k]
+                + (F[k] - torch.eye(3, dtype=torch.float64)) @ d
+                + 0.5 * torch.einsum("abe,b,e->a", grad_F[k], d, d)
+            )
+        moved = torch.stack(moved)
+        first = torch.floor((moved.amin(0) - aabb[0] + 1e-4 * deformed_cell) / deformed_cell).long()
+        last = torch.minimum(
+            torch.floor((moved.amax(0) - aabb[0] - 1e-4 * deformed_cell) / deformed_cell).long(), first + 2
+        )
+        for i in range(max(int(first[0]), 0), min(int(last[0]), shape[0] - 1) + 1):
+            for j in range(max(int(first[1]), 0), min(int(last[1]), shape[1] - 1) + 1):
+                for m in range(max(int(first[2]), 0), min(int(last[2]), shape[2] - 1) + 1):
+                    expected[i, j, m] = True
+    assert 0 < int(expected.sum()) < expected.numel(), "the case must mark some cells and leave others"
+    assert torch.equal(grid, expected)
 
 
 def _psnr(image: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor) -> float:
