@@ -9,6 +9,11 @@ the timed steps move from free fall into contact; the phase shares in ``extra`` 
 reference runs the same solver with the element energies, gradients and Hessians from the autograd references
 of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
 per-pair NumPy root finder, far too slow for a step).
+
+``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, beyond
+the dense solver's size, so block-Jacobi CG): 5.10 s per frame (0.196 frames/s; the two steps took 3.3 and 6.9 s),
+1.55x the reference; 10 Newton iterations and 3114 contacts on the last step, whose time went 84 % to the CG solves,
+8 % to assembly and 5 % to the broad phase.
 """
 
 from __future__ import annotations

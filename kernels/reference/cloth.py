@@ -49,8 +49,8 @@ def _membrane_element(q, dm_inv, area, mu, lam):
 def membrane_energy(x, faces, rest_inv, rest_area, mu, lam):
     """StVK membrane ``A (μ‖E‖² + ½λ tr(E)²)`` per triangle, with autograd gradient ``[F, 3, 3]`` and Hessian."""
     n = faces.shape[0]
-    mu = torch.as_tensor(mu, dtype=x.dtype).expand(n)
-    lam = torch.as_tensor(lam, dtype=x.dtype).expand(n)
+    mu = torch.as_tensor(mu, dtype=x.dtype, device=x.device).expand(n)
+    lam = torch.as_tensor(lam, dtype=x.dtype, device=x.device).expand(n)
     return _terms(_membrane_element, x[faces.long()], rest_inv, rest_area, mu, lam)
 
 
@@ -78,7 +78,7 @@ def _bending_element(q, rest_angle, weight, k):
 
 def bending_energy(x, hinges, rest_angle, rest_weight, k_bend):
     """Discrete-shell bending ``k w̄ (θ − θ̄)²`` per hinge, with autograd gradient ``[H, 4, 3]`` and Hessian."""
-    k = torch.as_tensor(k_bend, dtype=x.dtype).expand(hinges.shape[0])
+    k = torch.as_tensor(k_bend, dtype=x.dtype, device=x.device).expand(hinges.shape[0])
     return _terms(_bending_element, x[hinges.long()], rest_angle, rest_weight, k)
 
 
