@@ -37,6 +37,20 @@ def test_losses_vanish_on_rigid_motions_and_grow_with_stretch_and_folds():
     assert float(normal_loss(folded, faces, pairs)) > 1e-3
 
 
+def test_isometry_tolerance_lets_a_fabric_stretch_and_still_stops_distortion():
+    """With a tolerance τ, length changes up to τ of the rest length are free and larger ones cost what exceeds τ."""
+    vertices, faces = _sheet()
+    edges, degree, _ = _mesh_neighbours(faces, vertices.shape[0])
+    rest = torch.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], dim=1)
+    scale = torch.tensor([1.02, 1.0, 1.0], dtype=torch.float64)  # a 2 % stretch along x
+    assert float(isometry_loss(vertices * scale, rest, edges, degree)) > 1e-5
+    assert float(isometry_loss(vertices * scale, rest, edges, degree, tolerance=0.03)) == 0.0
+    # uniform 10 % growth: every edge 10 % longer, of which 3 % is free
+    grown = isometry_loss(vertices * 1.1, rest, edges, degree)
+    tolerated = isometry_loss(vertices * 1.1, rest, edges, degree, tolerance=0.03)
+    assert float(tolerated) == pytest.approx(0.7 * float(grown), rel=1e-9)
+
+
 def test_gaussians_sit_on_the_faces_in_the_faces_frames():
     vertices, faces = _sheet()
     appearance = GaussianAppearance.initial(vertices, faces)
