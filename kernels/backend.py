@@ -23,9 +23,12 @@ import torch
 
 __all__ = [
     "DEVICES",
+    "FRAMEWORKS",
     "available_devices",
+    "check_framework",
     "current_device",
     "default_device",
+    "default_framework",
     "init",
     "one_torch_thread_on_cpu",
     "synchronize",
@@ -33,10 +36,14 @@ __all__ = [
     "to_torch",
     "to_warp",
     "torch_device",
+    "warp_arg",
     "warp_device",
 ]
 
 DEVICES = ("cpu", "cuda")
+
+FRAMEWORKS = ("taichi", "warp")
+"""Kernel languages of the modules that keep a kernel in both (hash encoding, the renderer's per-round kernels)."""
 
 _device: str | None = None
 
@@ -64,6 +71,26 @@ def _check_device(device: str) -> str:
             f"device {device!r} is not available on this machine (available: {', '.join(available_devices())})"
         )
     return device
+
+
+def default_framework(device: str | None = None) -> str:
+    """The framework of a kernel kept in both languages, for ``device`` (default: the initialised one).
+
+    Taichi on the CPU, where it runs a kernel on every core and Warp on one; Warp on CUDA, where a launch costs the
+    host less. Its Python side checks a Taichi launch's argument types anew on each call: on an H100's host a
+    rendered frame's fifteen launches of the round kernels spent ~9 ms there (under ``cProfile``), and the renderer's
+    rounds are bound by the host.
+    """
+    device = device or current_device() or default_device()
+    return "warp" if device == "cuda" else "taichi"
+
+
+def check_framework(framework: str | None) -> str:
+    """``framework``, or :func:`default_framework` for ``None``; raises on an unknown one."""
+    framework = framework or default_framework()
+    if framework not in FRAMEWORKS:
+        raise ValueError(f"unknown framework {framework!r}; valid: {', '.join(FRAMEWORKS)}")
+    return framework
 
 
 def init(device: str | None = None) -> str:
@@ -160,6 +187,19 @@ def to_warp(tensor: torch.Tensor, dtype=None, requires_grad: bool | None = None)
 
     _check_on_device(tensor, "to_warp")
     return wp.from_torch(tensor, dtype=dtype, requires_grad=requires_grad)
+
+
+def warp_arg(tensor: torch.Tensor, dtype=None):
+    """A zero-copy array descriptor of ``tensor`` to pass to ``wp.launch`` (checked as :func:`to_warp`).
+
+    Cheaper to make than :func:`to_warp`'s ``wp.array`` (``wp.from_torch(..., return_ctype=True)``): for kernels
+    launched many times a frame with fresh tensors, such as a renderer's rounds. It holds a reference to the
+    tensor, so pass it straight to the launch.
+    """
+    import warp as wp
+
+    _check_on_device(tensor, "warp_arg")
+    return wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
 def to_torch(array) -> torch.Tensor:

@@ -58,7 +58,8 @@ __all__ = [
     "level_resolutions",
 ]
 
-FRAMEWORKS = ("taichi", "warp")
+FRAMEWORKS = backend.FRAMEWORKS
+default_framework = backend.default_framework
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 """The per-axis factors ``pi_i`` of the spatial hash (Eq. 4); ``pi_1 = 1`` keeps x-neighbours adjacent."""
@@ -101,12 +102,6 @@ def _level_major() -> bool:
     an H100 (1.72 ms against 1.20 ms forward, 1M points).
     """
     return backend.current_device() == "cpu"
-
-
-def default_framework(device: str | None = None) -> str:
-    """The faster framework on ``device`` (default: the initialised one): Taichi on CPU, Warp on CUDA."""
-    device = device or backend.current_device() or backend.default_device()
-    return "warp" if device == "cuda" else "taichi"
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -384,7 +379,7 @@ def hashgrid_forward(
     Returns:
         float32 ``[N, L * F]`` features, ``out[n, l * F + f]``.
     """
-    framework = _check_framework(framework)
+    framework = backend.check_framework(framework)
     levels, table_size, features = _check_table(table, "table")
     resolutions = _check_levels(x, resolutions, levels)
     out = torch.empty(x.shape[0], levels * features, dtype=torch.float32, device=x.device)
@@ -439,7 +434,7 @@ def hashgrid_backward(
     Returns:
         float32 ``[L, T, F]`` gradient of the table.
     """
-    framework = _check_framework(framework)
+    framework = backend.check_framework(framework)
     if not isinstance(table_size, int) or not 1 <= table_size <= _MAX_TABLE_SIZE:
         raise ValueError(f"table_size must be an int in [1, 2^31 - 1], got {table_size!r}")
     levels = resolutions.shape[0] if isinstance(resolutions, torch.Tensor) and resolutions.dim() == 1 else 0
@@ -498,7 +493,7 @@ class HashGridFunction(torch.autograd.Function):
                 "hash-grid encoding has no gradient with respect to positions; pass x.detach() "
                 "(only the table is differentiable)"
             )
-        framework = _check_framework(framework)
+        framework = backend.check_framework(framework)
         out = hashgrid_forward(x, table, resolutions, framework=framework)
         ctx.save_for_backward(x, resolutions)
         ctx.table_size = table.shape[1]
@@ -562,7 +557,7 @@ class HashGridEncoding(torch.nn.Module):
     def __init__(self, config: HashGridConfig | None = None, framework: str | None = None):
         super().__init__()
         self.config = config or HashGridConfig()
-        self.framework = framework if framework is None else _check_framework(framework)
+        self.framework = framework if framework is None else backend.check_framework(framework)
         c = self.config
         table = torch.empty(c.levels, c.table_size, c.features, dtype=torch.float32)
         self.table = torch.nn.Parameter(table.uniform_(-c.init_scale, c.init_scale))
@@ -575,13 +570,6 @@ class HashGridEncoding(torch.nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Features ``[N, L * F]`` of positions ``x`` ``[N, 3]`` (float32, unit cube, no gradient)."""
         return HashGridFunction.apply(x, self.table, self.resolutions, self.framework)
-
-
-def _check_framework(framework: str | None) -> str:
-    framework = framework or default_framework()
-    if framework not in FRAMEWORKS:
-        raise ValueError(f"unknown framework {framework!r}; valid: {', '.join(FRAMEWORKS)}")
-    return framework
 
 
 def _describe(value) -> str:
