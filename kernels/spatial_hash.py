@@ -22,7 +22,7 @@ import warp as wp
 
 from kernels import backend
 
-__all__ = ["SpatialHash", "knn", "radius_neighbours"]
+__all__ = ["SpatialHash", "knn", "knn_row", "radius_neighbours"]
 
 # Hashed cells per axis; the table has at most this cubed entries whatever the extent of the scene.
 _MAX_GRID_DIM = 128
@@ -58,20 +58,23 @@ def _before(distance_sq_a: float, index_a: int, distance_sq_b: float, index_b: i
     return distance_sq_a < distance_sq_b or (distance_sq_a == distance_sq_b and index_a < index_b)
 
 
-@wp.kernel
-def _knn_query(
+@wp.func
+def knn_row(
     grid: wp.uint64,
     points: wp.array(dtype=wp.vec3),
-    queries: wp.array(dtype=wp.vec3),
+    x: wp.vec3,
     start_radius: float,
     max_radius: float,
     index: wp.array2d(dtype=wp.int32),
     distance: wp.array2d(dtype=wp.float32),
+    row: int,
 ):
-    # Rows of ``index``/``distance`` hold the current k best as an insertion-sorted list of squared
-    # distances; the search ball doubles until it holds k points (then the k nearest lie inside it).
-    q = wp.tid()
-    x = queries[q]
+    """The ``k = index.shape[1]`` nearest points of ``x`` into row ``row`` of ``index``/``distance`` (a Warp function,
+    for kernels that search as part of their work; :meth:`SpatialHash.knn` describes the search and the result).
+
+    The row holds the current k best as an insertion-sorted list of squared distances while the search ball doubles
+    from ``start_radius`` until it holds k points (then the k nearest lie inside it) or reaches ``max_radius``.
+    """
     k = index.shape[1]
     radius = start_radius
     kept = int(0)
@@ -90,25 +93,39 @@ def _knn_query(
                 if kept < k:
                     slot = kept
                     kept += 1
-                elif _before(d_sq, j, distance[q, k - 1], index[q, k - 1]):
+                elif _before(d_sq, j, distance[row, k - 1], index[row, k - 1]):
                     slot = k - 1
                 if slot >= 0:
-                    while slot > 0 and _before(d_sq, j, distance[q, slot - 1], index[q, slot - 1]):
-                        distance[q, slot] = distance[q, slot - 1]
-                        index[q, slot] = index[q, slot - 1]
+                    while slot > 0 and _before(d_sq, j, distance[row, slot - 1], index[row, slot - 1]):
+                        distance[row, slot] = distance[row, slot - 1]
+                        index[row, slot] = index[row, slot - 1]
                         slot -= 1
-                    distance[q, slot] = d_sq
-                    index[q, slot] = j
+                    distance[row, slot] = d_sq
+                    index[row, slot] = j
         if found >= k or radius >= max_radius:
             searching = False
         else:
             radius = wp.min(2.0 * radius, max_radius)
     for s in range(k):
         if s < kept:
-            distance[q, s] = wp.sqrt(distance[q, s])
+            distance[row, s] = wp.sqrt(distance[row, s])
         else:
-            distance[q, s] = wp.inf
-            index[q, s] = -1
+            distance[row, s] = wp.inf
+            index[row, s] = -1
+
+
+@wp.kernel
+def _knn_query(
+    grid: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    queries: wp.array(dtype=wp.vec3),
+    start_radius: float,
+    max_radius: float,
+    index: wp.array2d(dtype=wp.int32),
+    distance: wp.array2d(dtype=wp.float32),
+):
+    q = wp.tid()
+    knn_row(grid, points, queries[q], start_radius, max_radius, index, distance, q)
 
 
 class SpatialHash:
@@ -139,6 +156,11 @@ class SpatialHash:
         lo, hi = points.amin(0), points.amax(0)
         # Mean volume per point of the bounding box (padded by one cell so flat sets are not zero).
         self._volume_per_point = float(torch.prod(hi - lo + self.cell_size)) / points.shape[0]
+
+    @property
+    def points_warp(self):
+        """The points as a ``wp.array`` of ``vec3`` (for kernels that search through :func:`knn_row`)."""
+        return self._points_wp
 
     @property
     def grid_id(self) -> int:
@@ -185,6 +207,12 @@ class SpatialHash:
             )
         return index, count
 
+    def start_radius(self, k: int, max_radius: float) -> float:
+        """Radius of the ball expected to hold ``k`` points at the set's mean density (within ``max_radius``): where a
+        k-nearest search (:meth:`knn`, :func:`knn_row`) starts."""
+        start = (3.0 * k * self._volume_per_point / (4.0 * math.pi)) ** (1.0 / 3.0)
+        return min(max(start, 1e-3 * self.cell_size), max_radius)
+
     def knn(self, queries: torch.Tensor, k: int, max_radius: float) -> tuple[torch.Tensor, torch.Tensor]:
         """The ``k`` nearest points of each query, nearest first, searched within ``max_radius``.
 
@@ -204,8 +232,7 @@ class SpatialHash:
         """
         _check_points(queries, "queries")
         _check_knn_arguments(k, max_radius)
-        start = (3.0 * k * self._volume_per_point / (4.0 * math.pi)) ** (1.0 / 3.0)
-        start = min(max(start, 1e-3 * self.cell_size), max_radius)
+        start = self.start_radius(k, max_radius)
         index = torch.empty((queries.shape[0], k), dtype=torch.int32, device=queries.device)
         distance = torch.empty((queries.shape[0], k), dtype=torch.float32, device=queries.device)
         if queries.shape[0] > 0:

@@ -40,14 +40,22 @@ kernels run, so the rounds of a ray emit bit for bit the samples of one :func:`m
 the sums of one :func:`composite_forward` call; what changes is that samples behind an opaque surface are never
 marched, and so never shaded.
 
-Framework: Taichi. Both kernels loop over one ray per thread with a data-dependent inner loop, the shape
+Framework: Taichi. The kernels loop over one ray per thread with a data-dependent inner loop, the shape
 the project's rule gives to Taichi for per-sample rendering that must run interactively on a CPU (Taichi
-runs them on every core; Warp's CPU backend on one); a Warp port was not written. Figures from
+runs them on every core; Warp's CPU backend on one). The two kernels a renderer launches every round,
+:func:`march_resume` and :func:`composite_accumulate`, are kept in Warp as well (``framework=``), with the same
+loops, and Warp is their default on CUDA: a frame launches them a dozen times, and a Taichi launch costs the host
+several times what a Warp launch does (:func:`kernels.backend.default_framework`). On the CPU the Warp march is
+bit for bit Taichi's; on CUDA the two compilers may fuse multiply-adds differently, so a sample can move in the
+last bit. Figures from
 ``python -m apps.bench --workload volume_render --size paper`` (16k rays, 2.1M
 packed samples, forward + backward through :class:`VolumeRenderFunction`) on this project's shared
 2-core CPU, under load from other jobs: 132 ms (15.9 Msamples/s) against 1206 ms for the torch
 reference (segmented ``cumsum`` + ``index_add_`` + autograd), 9.1x. Not yet measured on CUDA.
 """
+
+# Warp needs int(0)/float(0.0) to declare variables that change inside dynamic loops.
+# ruff: noqa: UP018
 
 import functools
 import math
@@ -55,8 +63,11 @@ from typing import NamedTuple
 
 import taichi as ti
 import torch
+import warp as wp
 
 from kernels import backend
+
+wp.set_module_options({"enable_backward": False})  # rendering kernels: forward only, no adjoints to compile
 
 __all__ = [
     "DEFAULT_TRANSMITTANCE_THRESHOLD",
@@ -384,6 +395,102 @@ def _march_resume_ti(
         emitted[i] = n
 
 
+# The same march in Warp (``framework="warp"``, the default on CUDA): rounds issue a launch per round, and a Warp
+# launch costs the host far less than a Taichi one (:func:`kernels.backend.default_framework`).
+
+_TINY_DIRECTION_WP = wp.constant(_TINY_DIRECTION)
+
+
+@wp.func
+def _safe_component_wp(value: float):
+    result = value
+    if wp.abs(value) < _TINY_DIRECTION_WP:
+        result = wp.where(value >= 0.0, _TINY_DIRECTION_WP, -_TINY_DIRECTION_WP)
+    return result
+
+
+@wp.func
+def _ray_box_wp(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
+    t_enter = -wp.inf
+    t_exit = wp.inf
+    for a in range(3):
+        inv = 1.0 / _safe_component_wp(d[a])
+        t0 = (lo[a] - o[a]) * inv
+        t1 = (hi[a] - o[a]) * inv
+        t_enter = wp.max(t_enter, wp.min(t0, t1))
+        t_exit = wp.min(t_exit, wp.max(t0, t1))
+    return t_enter, t_exit
+
+
+@wp.func
+def _cell_exit_wp(p: wp.vec3, d: wp.vec3, cell: wp.vec3i, lo: wp.vec3, cell_size: wp.vec3):
+    t_exit = wp.inf
+    for a in range(3):
+        da = _safe_component_wp(d[a])
+        face = lo[a] + float(cell[a] + wp.where(da > 0.0, 1, 0)) * cell_size[a]
+        t_exit = wp.min(t_exit, (face - p[a]) / da)
+    return wp.max(t_exit, 0.0)
+
+
+@wp.kernel
+def _march_resume_wp(
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    rays: wp.array(dtype=wp.int64),
+    t: wp.array(dtype=wp.float32),
+    t_end: wp.array(dtype=wp.float32),
+    count: wp.array(dtype=wp.int32),
+    transmittance: wp.array(dtype=wp.float32),
+    threshold: float,
+    occupancy: wp.array3d(dtype=wp.uint8),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    min_step: float,
+    max_step: float,
+    cone_angle: float,
+    max_samples: int,
+    per_ray: int,
+    positions: wp.array(dtype=wp.vec3),
+    depths: wp.array(dtype=wp.float32),
+    deltas: wp.array(dtype=wp.float32),
+    emitted: wp.array(dtype=wp.int32),
+):
+    """:func:`_march_resume_ti` with :func:`_march_segment_ti`'s loop inlined (same arithmetic, same lattice)."""
+    i = wp.tid()
+    r = int(rays[i])
+    resolution = wp.vec3i(occupancy.shape[0], occupancy.shape[1], occupancy.shape[2])
+    cell_size = wp.cw_div(hi - lo, wp.vec3(float(resolution[0]), float(resolution[1]), float(resolution[2])))
+    n = int(0)
+    if transmittance[r] >= threshold:
+        budget = wp.min(per_ray, max_samples - count[r])
+        o = origins[r]
+        d = directions[r]
+        depth = float(t[r])
+        end = t_end[r]
+        base = i * per_ray
+        while depth < end and n < budget:
+            dt = wp.clamp(depth * cone_angle, min_step, max_step)
+            p = o + depth * d
+            u = wp.cw_div(p - lo, cell_size)
+            cell = wp.vec3i(
+                wp.clamp(int(wp.floor(u[0])), 0, resolution[0] - 1),
+                wp.clamp(int(wp.floor(u[1])), 0, resolution[1] - 1),
+                wp.clamp(int(wp.floor(u[2])), 0, resolution[2] - 1),
+            )
+            if occupancy[cell[0], cell[1], cell[2]] != wp.uint8(0):
+                positions[base + n] = p
+                depths[base + n] = depth
+                deltas[base + n] = dt
+                n += 1
+                depth += dt
+            else:
+                skip = _cell_exit_wp(p, d, cell, lo, cell_size)
+                depth += (wp.floor(skip / dt) + 1.0) * dt
+        t[r] = depth
+        count[r] = count[r] + n
+    emitted[i] = n
+
+
 class MarchState(NamedTuple):
     """Where each ray's march stands between rounds (:func:`march_start`, :func:`march_resume`).
 
@@ -460,6 +567,7 @@ def march_resume(
     max_samples: int = 1024,
     transmittance: torch.Tensor | None = None,
     transmittance_threshold: float = 0.0,
+    framework: str | None = None,
 ) -> RoundSamples:
     """One round of a resumable march: rays ``rays`` go on from ``state`` until each has emitted
     ``samples_per_ray`` more samples (or its march ended); ``state`` is updated in place.
@@ -477,12 +585,15 @@ def march_resume(
         samples_per_ray: ``k``, the most samples a ray emits this round.
         transmittance: float32 ``[R]``, or ``None``: rays whose transmittance is below ``transmittance_threshold``
             emit nothing (early ray termination, as :func:`composite_forward` stops compositing there).
+        framework: ``"taichi"`` or ``"warp"`` (the same loop; the Warp launch costs the host less);
+            ``None``: :func:`kernels.backend.default_framework`.
 
     Returns:
         :class:`RoundSamples` with ``k`` slots per ray of ``rays``.
     """
     count = _check_rays(origins, directions)
     device = origins.device
+    framework = backend.check_framework(framework)
     if samples_per_ray < 1:
         raise ValueError(f"samples_per_ray must be at least 1, got {samples_per_ray}")
     if not (isinstance(rays, torch.Tensor) and rays.dtype == torch.int64 and rays.dim() == 1):
@@ -504,7 +615,7 @@ def march_resume(
             f"transmittance must be float32 [R] = [{count}], got {transmittance.dtype} {list(transmittance.shape)}"
         )
     grid = _check_occupancy(occupancy)
-    lo, hi = _box(aabb)
+    lo, hi = _box(aabb, framework)
     steps = _steps(min_step, max_step, cone_angle, max_samples)
     marched, k = rays.shape[0], int(samples_per_ray)
     positions = torch.zeros(marched, k, 3, device=device)
@@ -519,6 +630,23 @@ def march_resume(
             transmittance.contiguous(),
         )
         outputs = (positions.view(-1, 3), depths.view(-1), deltas.view(-1), emitted)
+        if framework == "warp":
+            wp.launch(
+                _march_resume_wp,
+                dim=marched,
+                inputs=[
+                    *_warp_views(inputs),
+                    float(transmittance_threshold),
+                    backend.warp_arg(grid),
+                    lo,
+                    hi,
+                    *steps,
+                    k,
+                    *_warp_views(outputs),
+                ],
+                device=backend.warp_device(),
+            )
+            return RoundSamples(positions, depths, deltas, emitted)
         _march_resume_ti(
             *(backend.taichi_arg(v) for v in inputs),
             float(transmittance_threshold),
@@ -689,6 +817,43 @@ def _composite_accumulate_ti(
         depth[r] = d_r
 
 
+@wp.kernel
+def _composite_accumulate_wp(
+    sigmas: wp.array(dtype=wp.float32),
+    colors: wp.array(dtype=wp.vec3),
+    deltas: wp.array(dtype=wp.float32),
+    depths: wp.array(dtype=wp.float32),
+    ray_offsets: wp.array(dtype=wp.int32),
+    rays: wp.array(dtype=wp.int64),
+    threshold: float,
+    color: wp.array(dtype=wp.vec3),
+    opacity: wp.array(dtype=wp.float32),
+    depth: wp.array(dtype=wp.float32),
+    transmittance: wp.array(dtype=wp.float32),
+):
+    """:func:`_composite_accumulate_ti` with :func:`_composite_ray_ti`'s loop inlined (same arithmetic)."""
+    i = wp.tid()
+    r = int(rays[i])
+    T = float(transmittance[r])
+    c = color[r]
+    a = float(opacity[r])
+    z = float(depth[r])
+    s = int(ray_offsets[i])
+    end = ray_offsets[i + 1]
+    while s < end and T >= threshold:
+        alpha = 1.0 - wp.exp(-sigmas[s] * deltas[s])
+        weight = T * alpha
+        c += weight * colors[s]
+        a += weight
+        z += weight * depths[s]
+        T *= 1.0 - alpha
+        s += 1
+    transmittance[r] = T
+    color[r] = c
+    opacity[r] = a
+    depth[r] = z
+
+
 class CompositeState(NamedTuple):
     """Running compositing sums of rays composited in rounds (:func:`composite_start`, :func:`composite_accumulate`).
 
@@ -725,6 +890,7 @@ def composite_accumulate(
     ray_offsets: torch.Tensor,
     *,
     transmittance_threshold: float = DEFAULT_TRANSMITTANCE_THRESHOLD,
+    framework: str | None = None,
 ) -> None:
     """Composite the next packed samples of rays ``rays`` onto their running sums in ``state`` (in place; forward
     only, for rendering).
@@ -741,8 +907,10 @@ def composite_accumulate(
             :func:`composite_forward`).
         ray_offsets: int32 ``[A + 1]``: ray ``rays[i]`` owns samples ``ray_offsets[i]:ray_offsets[i + 1]``.
         transmittance_threshold: a ray stops at the first sample with ``T`` below this.
+        framework: ``"taichi"`` or ``"warp"`` (the same loop); ``None``: :func:`kernels.backend.default_framework`.
     """
     marched = _check_samples(sigmas, colors, deltas, depths, ray_offsets)
+    framework = backend.check_framework(framework)
     if not (isinstance(rays, torch.Tensor) and rays.dtype == torch.int64 and rays.shape == (marched,)):
         raise ValueError(
             f"rays must be int64 [A] = [{marched}] (one per CSR row), got "
@@ -757,7 +925,19 @@ def composite_accumulate(
     ):
         if tensor.dtype != torch.float32 or tensor.shape != shape or not tensor.is_contiguous():
             raise ValueError(f"state.{name} must be contiguous float32 {list(shape)}; build it with composite_start")
-    if marched > 0:
+    if marched > 0 and framework == "warp":
+        inputs = (sigmas, colors, deltas, depths, ray_offsets, rays)
+        wp.launch(
+            _composite_accumulate_wp,
+            dim=marched,
+            inputs=[
+                *_warp_views(t.detach().contiguous() for t in inputs),
+                float(transmittance_threshold),
+                *_warp_views(state),
+            ],
+            device=backend.warp_device(),
+        )
+    elif marched > 0:
         _composite_accumulate_ti(
             *(backend.taichi_arg(t.detach().contiguous()) for t in (sigmas, colors, deltas, depths, ray_offsets)),
             backend.taichi_arg(rays.contiguous()),
@@ -939,21 +1119,31 @@ def _check_occupancy(occupancy: torch.Tensor) -> torch.Tensor:
     return occupancy.to(torch.uint8).contiguous()
 
 
-def _box(aabb) -> tuple:
-    """``(lo, hi)`` of a ``[2, 3]`` box as Taichi vectors (a CPU box costs no device transfer)."""
+def _box(aabb, framework: str = "taichi") -> tuple:
+    """``(lo, hi)`` of a ``[2, 3]`` box as Taichi or Warp vectors (a CPU box costs no device transfer)."""
     aabb = torch.as_tensor(aabb, dtype=torch.float32).cpu()
     if aabb.shape != (2, 3):
         raise ValueError(f"aabb must be [2, 3] (lo, hi), got shape {tuple(aabb.shape)}")
-    return _box_vectors(tuple(aabb.flatten().tolist()))
+    return _box_vectors(tuple(aabb.flatten().tolist()), framework)
 
 
 @functools.lru_cache(maxsize=64)
-def _box_vectors(corners: tuple) -> tuple:
-    """Taichi vectors of a box's corners, cached: building them costs more than a round's launch of a kernel."""
+def _box_vectors(corners: tuple, framework: str) -> tuple:
+    """Vectors of a box's corners, cached: building Taichi's costs more than a round's launch of a kernel."""
     lo, hi = corners[:3], corners[3:]
     if not all(h > l for l, h in zip(lo, hi, strict=True)):
         raise ValueError(f"aabb must be [2, 3] (lo, hi) with hi > lo on every axis, got {[list(lo), list(hi)]}")
-    return ti.math.vec3(lo), ti.math.vec3(hi)
+    vector = wp.vec3 if framework == "warp" else ti.math.vec3
+    return vector(lo), vector(hi)
+
+
+def _warp_views(tensors) -> list:
+    """Zero-copy Warp launch arguments of tensors (:func:`kernels.backend.warp_arg`): ``[N, 3]`` float32 as ``vec3``
+    arrays, the others by their scalar type."""
+    return [
+        backend.warp_arg(t, dtype=wp.vec3 if t.dim() == 2 and t.shape[1] == 3 and t.dtype == torch.float32 else None)
+        for t in tensors
+    ]
 
 
 def _steps(min_step: float, max_step: float | None, cone_angle: float, max_samples: int) -> tuple:

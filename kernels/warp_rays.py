@@ -45,17 +45,30 @@ rendering kernels that must run interactively on a CPU (Taichi uses every core, 
 ``python -m apps.bench --workload warp_rays --size paper`` (1M samples, 3 IPs each, random F and ∇F, 3.7
 iterations on average) on this project's shared 2-core CPU, under load from other jobs: 168 ms (6.2 Msamples/s)
 against 27.1 s for the torch reference (:mod:`kernels.reference.warp_rays`, batched ``linalg.solve``), 161x.
-Not yet measured on CUDA.
+
+A renderer's round (:func:`warp_round`) takes the marched samples in their per-ray slots, finds each one's nearest
+IPs, warps it and tests its rest cell in one call. It is kept in Warp too (``framework=``, the default on CUDA, where
+a Taichi launch costs the host several times a Warp one; :func:`kernels.backend.default_framework`): a search kernel
+and a warp kernel over all the round's slots, so nothing is compacted first and the round needs one host sync. On
+the lego at 800² (H100) the two take 4.6 and 2.3 ms of a frame; one kernel doing both took 8.0 ms (the search then
+runs at the Newton solve's lower occupancy).
 """
+
+# Warp needs int(0)/float(0.0) to declare variables that change inside dynamic loops.
+# ruff: noqa: UP018
 
 from typing import NamedTuple
 
 import taichi as ti
 import torch
+import warp as wp
 
 from kernels import backend
+from kernels.spatial_hash import SpatialHash, knn_row
 
-__all__ = ["SINGULAR_DETERMINANT", "WarpedSamples", "warp_to_rest"]
+wp.set_module_options({"enable_backward": False})  # rendering kernels: forward only, no adjoints to compile
+
+__all__ = ["SINGULAR_DETERMINANT", "WarpedSamples", "warp_round", "warp_to_rest"]
 
 SINGULAR_DETERMINANT = 1e-6
 """``|det J|`` below which a Newton Jacobian (dimensionless) counts as singular."""
@@ -241,6 +254,283 @@ def warp_to_rest(
         used.zero_()
         fallback.zero_()
     return WarpedSamples(rest, valid.bool(), used, fallback.bool())
+
+
+# ---------------------------------------------------------------------------------------------------
+# A renderer's round in Warp: nearest IPs, warp and the rest-occupancy test over a round's slots
+# ---------------------------------------------------------------------------------------------------
+
+_SINGULAR_WP = wp.constant(SINGULAR_DETERMINANT)
+_MIN_DISTANCE_WP = wp.constant(_MIN_DISTANCE)
+
+
+@wp.func
+def _solve3_wp(J: wp.mat33, rhs: wp.vec3):
+    """:func:`_solve3_ti`: ``J x = rhs`` by the adjugate; ``(x, det)``, x = 0 when singular."""
+    c00 = J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
+    c01 = J[1, 2] * J[2, 0] - J[1, 0] * J[2, 2]
+    c02 = J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]
+    det = J[0, 0] * c00 + J[0, 1] * c01 + J[0, 2] * c02
+    x = wp.vec3(0.0)
+    if wp.abs(det) >= _SINGULAR_WP:
+        adj = wp.mat33(
+            c00, J[0, 2] * J[2, 1] - J[0, 1] * J[2, 2], J[0, 1] * J[1, 2] - J[0, 2] * J[1, 1],
+            c01, J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0], J[0, 2] * J[1, 0] - J[0, 0] * J[1, 2],
+            c02, J[0, 1] * J[2, 0] - J[0, 0] * J[2, 1], J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0],
+        )
+        x = (adj * rhs) / det
+    return x, det
+
+
+@wp.func
+def _taylor_offset_wp(
+    grad_F: wp.array4d(dtype=wp.float32), k: int, F: wp.mat33, b: wp.vec3, quadratic: bool, iterations: int,
+    tolerance: float,
+):
+    """:func:`_taylor_offset_ti`: rest offset d with x̃ − x̃_k = b; ``(d, newton iterations, fell back)``."""
+    d, det = _solve3_wp(F, b)
+    used = int(1)
+    fallback = int(0)
+    if wp.abs(det) < _SINGULAR_WP:
+        d = b
+        fallback = 1
+    elif quadratic:
+        linear = d
+        converged = int(0)
+        while used < iterations and converged == 0:
+            quad = wp.vec3(0.0)
+            J = F
+            for a in range(3):
+                for c in range(3):
+                    for e in range(3):
+                        g = grad_F[k, a, c, e]
+                        quad[a] = quad[a] + 0.5 * g * d[c] * d[e]
+                        J[a, c] = J[a, c] + 0.5 * g * d[e]
+                        J[a, e] = J[a, e] + 0.5 * g * d[c]
+            residual = F * d + quad - b
+            step, det_J = _solve3_wp(J, -residual)
+            if wp.abs(det_J) < _SINGULAR_WP:
+                break
+            d = d + step
+            used += 1
+            if wp.length_sq(step) <= tolerance * tolerance:
+                converged = 1
+        if converged == 0:
+            d = linear
+            fallback = 1
+    return d, used, fallback
+
+
+@wp.kernel
+def _round_neighbours_wp(
+    samples: wp.array(dtype=wp.vec3),
+    counts: wp.array(dtype=wp.int32),
+    per_ray: int,
+    grid: wp.uint64,
+    ip_deformed: wp.array(dtype=wp.vec3),
+    start_radius: float,
+    max_radius: float,
+    neighbours: wp.array2d(dtype=wp.int32),
+    distances: wp.array2d(dtype=wp.float32),
+):
+    """The nearest deformed IPs of every filled slot of a round (:func:`knn_row`)."""
+    s = wp.tid()
+    if s % per_ray < counts[s // per_ray]:
+        knn_row(grid, ip_deformed, samples[s], start_radius, max_radius, neighbours, distances, s)
+
+
+@wp.kernel
+def _warp_round_wp(
+    samples: wp.array(dtype=wp.vec3),
+    counts: wp.array(dtype=wp.int32),
+    per_ray: int,
+    neighbours: wp.array2d(dtype=wp.int32),
+    distances: wp.array2d(dtype=wp.float32),
+    ip_deformed: wp.array(dtype=wp.vec3),
+    ip_displacement: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    grad_F: wp.array4d(dtype=wp.float32),
+    cutoff: wp.array(dtype=wp.float32),
+    quadratic: bool,
+    iterations: int,
+    tolerance: float,
+    occupancy: wp.array3d(dtype=wp.uint8),
+    lo: wp.vec3,
+    hi: wp.vec3,
+    rest: wp.array(dtype=wp.vec3),
+    keep: wp.array(dtype=wp.uint8),
+):
+    """One filled slot of a round: :func:`_warp_ti`'s blend of its nearest IPs' Taylor inversions, and whether the
+    rest position lies in an occupied rest cell (the search is :func:`_round_neighbours_wp`; module docstring)."""
+    s = wp.tid()
+    x_tilde = samples[s]
+    position = wp.vec3(0.0)
+    kept = wp.uint8(0)
+    if s % per_ray < counts[s // per_ray]:
+        position = x_tilde
+        nearest = neighbours[s, 0]
+        if nearest >= 0:
+            if distances[s, 0] <= cutoff[nearest]:
+                u_sum = wp.vec3(0.0)
+                w_sum = float(0.0)
+                for j in range(neighbours.shape[1]):
+                    k = neighbours[s, j]
+                    if k >= 0:
+                        b = x_tilde - ip_deformed[k]
+                        d, used, fb = _taylor_offset_wp(grad_F, k, F[k], b, quadratic, iterations, tolerance)
+                        w = 1.0 / wp.max(distances[s, j], _MIN_DISTANCE_WP)
+                        u_sum = u_sum + w * (ip_displacement[k] + (b - d))
+                        w_sum = w_sum + w
+                position = x_tilde - u_sum / w_sum
+                resolution = wp.vec3i(occupancy.shape[0], occupancy.shape[1], occupancy.shape[2])
+                cells = wp.vec3(float(resolution[0]), float(resolution[1]), float(resolution[2]))
+                cell_size = wp.cw_div(hi - lo, cells)
+                u = wp.cw_div(position - lo, cell_size)
+                cell = wp.vec3i(int(wp.floor(u[0])), int(wp.floor(u[1])), int(wp.floor(u[2])))
+                if cell[0] >= 0 and cell[1] >= 0 and cell[2] >= 0:
+                    if cell[0] < resolution[0] and cell[1] < resolution[1] and cell[2] < resolution[2]:
+                        kept = occupancy[cell[0], cell[1], cell[2]]
+    rest[s] = position
+    keep[s] = wp.where(kept != wp.uint8(0), wp.uint8(1), wp.uint8(0))
+
+
+def warp_round(
+    samples: torch.Tensor,
+    counts: torch.Tensor,
+    ip_hash: SpatialHash,
+    ip_displacement: torch.Tensor,
+    F: torch.Tensor,
+    grad_F: torch.Tensor,
+    cutoff: torch.Tensor,
+    rest_occupancy: torch.Tensor,
+    rest_aabb,
+    *,
+    max_radius: float,
+    neighbours: int = 3,
+    quadratic: bool = True,
+    iterations: int = 10,
+    tolerance: float = 1e-6,
+    framework: str | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp a renderer's round of marched samples to rest and tell which are worth a NeRF query.
+
+    For every filled slot: its ``neighbours`` nearest deformed IPs (:meth:`SpatialHash.knn`), the blended Taylor
+    inversion of :func:`warp_to_rest`, and the test that the rest position lies in an occupied cell of the rest
+    occupancy grid (outside it σ = 0, as outside every IP's reach). With ``framework="warp"`` (the default on CUDA)
+    this is two kernels (search; warp and test) over all ``A · k`` slots, empty ones included, so nothing is
+    compacted or gathered first;
+    ``"taichi"`` gathers the filled slots, runs :meth:`SpatialHash.knn` and :func:`warp_to_rest`'s Taichi kernel,
+    and scatters back.
+
+    Args:
+        samples: float32 ``[A, k, 3]`` deformed positions; ray ``i`` filled slots ``[i, :counts[i]]``
+            (:class:`kernels.volume_render.RoundSamples`).
+        counts: int32 ``[A]``.
+        ip_hash: :class:`SpatialHash` over the deformed IP positions x̃_k (float32 ``[K, 3]``).
+        ip_displacement, F, grad_F, cutoff: as :func:`warp_to_rest`.
+        rest_occupancy: uint8 or bool ``[Gx, Gy, Gz]`` rest occupancy grid over ``rest_aabb`` (``[2, 3]``, metres).
+        max_radius: the nearest IPs are searched within this, metres.
+        neighbours, quadratic, iterations, tolerance: as :func:`warp_to_rest` (``neighbours``: N).
+        framework: ``"taichi"`` or ``"warp"``; ``None``: :func:`kernels.backend.default_framework`.
+
+    Returns:
+        ``(rest, keep)``: float32 ``[A · k, 3]`` rest positions (the sample itself where no IP reaches it, zeros in
+        empty slots) and bool ``[A · k]``: filled, reached by an IP and in an occupied rest cell.
+    """
+    framework = backend.check_framework(framework)
+    if samples.dtype != torch.float32 or samples.dim() != 3 or samples.shape[2] != 3:
+        raise ValueError(f"samples must be float32 [A, k, 3], got {samples.dtype} {list(samples.shape)}")
+    rays, k = samples.shape[:2]
+    if counts.dtype != torch.int32 or counts.shape != (rays,):
+        raise ValueError(f"counts must be int32 [A] = [{rays}], got {counts.dtype} {list(counts.shape)}")
+    if neighbours < 1 or iterations < 1 or not tolerance > 0.0 or not max_radius > 0.0:
+        raise ValueError(
+            "need neighbours >= 1, iterations >= 1, tolerance > 0 and max_radius > 0, got "
+            f"{neighbours}, {iterations}, {tolerance} and {max_radius}"
+        )
+    _check_warp_arguments(
+        samples.view(-1, 3)[:0], torch.empty(0, neighbours, dtype=torch.int32, device=samples.device),
+        torch.empty(0, neighbours, device=samples.device), ip_hash.points, ip_displacement, F, grad_F, cutoff,
+    )
+    grid = rest_occupancy.to(torch.uint8).contiguous()
+    box = torch.as_tensor(rest_aabb, dtype=torch.float32).cpu()
+    if grid.dim() != 3 or box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
+        raise ValueError("rest_occupancy must be a [Gx, Gy, Gz] grid over rest_aabb [2, 3] (lo, hi with hi > lo)")
+    device = samples.device
+    slots = rays * k
+    if framework == "warp":
+        rest = torch.empty(slots, 3, device=device)
+        keep = torch.empty(slots, dtype=torch.uint8, device=device)
+        if slots > 0:
+            near = torch.empty(slots, neighbours, dtype=torch.int32, device=device)
+            distance = torch.empty(slots, neighbours, device=device)
+            flat = backend.warp_arg(samples.contiguous().view(-1, 3), dtype=wp.vec3)
+            filled = backend.warp_arg(counts.contiguous())
+            wp.launch(
+                _round_neighbours_wp,
+                dim=slots,
+                inputs=[
+                    flat,
+                    filled,
+                    k,
+                    ip_hash.grid_id,
+                    ip_hash.points_warp,
+                    ip_hash.start_radius(neighbours, max_radius),
+                    float(max_radius),
+                    backend.warp_arg(near),
+                    backend.warp_arg(distance),
+                ],
+                device=backend.warp_device(),
+            )
+            wp.launch(
+                _warp_round_wp,
+                dim=slots,
+                inputs=[
+                    flat,
+                    filled,
+                    k,
+                    backend.warp_arg(near),
+                    backend.warp_arg(distance),
+                    ip_hash.points_warp,
+                    backend.warp_arg(ip_displacement.contiguous(), dtype=wp.vec3),
+                    backend.warp_arg(F.contiguous(), dtype=wp.mat33),
+                    backend.warp_arg(grad_F.contiguous()),
+                    backend.warp_arg(cutoff.contiguous()),
+                    bool(quadratic),
+                    int(iterations),
+                    float(tolerance),
+                    backend.warp_arg(grid),
+                    wp.vec3(box[0].tolist()),
+                    wp.vec3(box[1].tolist()),
+                    backend.warp_arg(rest, dtype=wp.vec3),
+                    backend.warp_arg(keep),
+                ],
+                device=backend.warp_device(),
+            )
+        return rest, keep.bool()
+    filled = (torch.arange(k, device=device) < counts[:, None]).view(-1)
+    index = torch.nonzero(filled).view(-1)
+    positions = samples.reshape(-1, 3)[index].contiguous()
+    near, distance = ip_hash.knn(positions, neighbours, max_radius=max_radius)
+    warped = warp_to_rest(
+        positions, near, distance, ip_hash.points, ip_displacement, F, grad_F, cutoff,
+        quadratic=quadratic, iterations=iterations, tolerance=tolerance,
+    )
+    rest = torch.zeros(slots, 3, device=device)
+    keep = torch.zeros(slots, dtype=torch.bool, device=device)
+    rest[index] = warped.rest
+    keep[index] = warped.valid & _occupied(warped.rest, grid, box.to(device))
+    return rest, keep
+
+
+def _occupied(x: torch.Tensor, grid: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
+    """bool ``[N]``: points ``x`` in an occupied cell of ``grid`` over ``box`` (False outside it), with the Warp
+    kernel's arithmetic."""
+    resolution = torch.tensor(grid.shape, device=x.device)
+    cell = torch.floor((x - box[0]) / ((box[1] - box[0]) / resolution.float())).long()
+    inside = ((cell >= 0) & (cell < resolution)).all(-1)
+    cell = torch.minimum(cell.clamp_min(0), resolution - 1)
+    return inside & (grid[cell[:, 0], cell[:, 1], cell[:, 2]] != 0)
 
 
 def _check_warp_arguments(samples, neighbours, distances, ip_deformed, ip_displacement, F, grad_F, cutoff):

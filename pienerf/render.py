@@ -1,7 +1,7 @@
 """Rendering the deformed NeRF by quadratic ray warping, with a ground plane and shadow map (PIE-NeRF §4.6, Fig. 7–8).
 
 The NeRF is trained on the rest shape; after the solver moves the body (q), every sample x̃ on a camera ray
-through the deformed scene is warped back to its rest position x (:func:`kernels.warp_rays.warp_to_rest`,
+through the deformed scene is warped back to its rest position x (:func:`kernels.warp_rays.warp_round`,
 Eq. 19–21, from the three nearest deformed integrator points) and the NeRF is queried there (σ, rgb).
 
 Marching. The occupancy grid lives in rest space, so the renderer warps it forward once per frame: every
@@ -19,11 +19,12 @@ its march stopped and its running colour, opacity, ``Σ w t`` and transmittance;
 more samples (``k`` doubling, on CUDA 8, 16, … up to 128; on the CPU 1, 2, … up to 32) for every ray still alive,
 warps and shades them, composites them and drops the rays that left the box or passed ``far`` or whose
 transmittance fell below the threshold. Samples behind an opaque surface are thus never warped or queried, and a
-frame is 5–10 rounds of a few kernel launches and two host syncs each, over all rays at once on CUDA, instead of
+frame is 5–10 rounds of a few kernel launches and one host sync each, over all rays at once on CUDA, instead of
 one march, warp and query per chunk of 4096 rays. The resumed
 march emits exactly the samples of a full march and the compositing is the same arithmetic, so the image is the
-full march's (bit for bit at q = 0 against :func:`pienerf.nerf.render_rays`; to float rounding of the field's
-batched queries otherwise). How much is saved depends on the NeRF's opacity: on the analytic teapot (opaque within
+full march's (bit for bit at q = 0 against :func:`pienerf.nerf.render_rays` with the Taichi kernels; with the Warp
+kernels, CUDA's default, to the last bit of the compositing's ``exp``; to float rounding of the field's batched
+queries otherwise). How much is saved depends on the NeRF's opacity: on the analytic teapot (opaque within
 2 mm) with its rod bent, a 40² view marched 10.5k samples (queried 3.8k) where a full march marches 38.3k; the
 teapot's fitted NeRF (:func:`pienerf.nerf_backend.scene_nerf`, whose inside stays translucent: transmittance
 reaches 0.5 about 12 samples past the surface but 0.01 only after ~60) marched 707k of 746k samples at 200² and
@@ -62,7 +63,7 @@ import torch
 from kernels import backend
 from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import composite_accumulate, composite_start, march_resume, march_start
-from kernels.warp_rays import warp_to_rest
+from kernels.warp_rays import warp_round
 from pienerf.data import Cameras
 from pienerf.density import sigmoid_density
 from pienerf.model import QGMLSModel
@@ -341,15 +342,15 @@ class DeformedRenderer:
 
     Rays are rendered in rounds with early termination, as instant-NGP's inference does. Each ray keeps the depth
     its march resumes from and its running compositing sums (colour, opacity, ``Σ w t``, transmittance); a round
-    marches at most ``k`` more samples for every ray still alive (:func:`kernels.volume_render.march_resume`); a
-    host sync learns how many samples it emitted and how many rays go on, and the emitted samples are gathered and
-    warped; a second sync counts those worth a NeRF query (some IP reaches them and their rest position lies in an
-    occupied rest cell; the others have σ = 0, and compositing them would change nothing), and the kept samples
-    are queried and composited onto the sums (:func:`kernels.volume_render.composite_accumulate`). A ray drops out
-    once it leaves the box or passes ``far`` or once its transmittance falls below the field's
+    marches at most ``k`` more samples for every ray still alive (:func:`kernels.volume_render.march_resume`); every
+    filled slot is then warped to rest and tested for being worth a NeRF query (some IP reaches it and its rest
+    position lies in an occupied rest cell; the others have σ = 0, and compositing them would change nothing) by
+    :func:`kernels.warp_rays.warp_round`; one host sync counts the samples marched and kept and the rays going on; and
+    the kept samples are queried and composited onto the sums (:func:`kernels.volume_render.composite_accumulate`).
+    A ray drops out once it leaves the box or passes ``far`` or once its transmittance falls below the field's
     ``transmittance_threshold``, so the samples behind an opaque surface are never warped or queried. ``k``
     doubles from ``first_round_steps`` up to ``steps_per_round`` (and down to what ``round_samples`` allows), so a
-    frame takes few rounds, each a batch of kernel launches and two host syncs.
+    frame takes few rounds, each a handful of kernel launches and one host sync.
     A resumed march emits exactly the samples one full march emits and the compositing runs the same arithmetic,
     so the image is the one a full march and composite give.
 
@@ -363,15 +364,18 @@ class DeformedRenderer:
         first_round_steps: samples per ray of the first round. ``None``: 16 on CUDA, 1 on the CPU.
         steps_per_round: most samples a ray marches in one round. ``None``: 128 on CUDA, 32 on the CPU. On CUDA
             a round costs ~1 ms of launches and syncs whatever its size, so few large rounds win: on the lego at
-            800² (H100, float32 MLPs), first / most / budget 1 / 32 / 2²¹ took 12 rounds and 58 ms, 8 / 128 / 2²³
-            5 rounds and 43 ms, though they marched 10.6M samples against 9.7M. Growing ``k`` to fill the budget
-            (3–4 rounds) marched up to 12.7M samples and was slower.
+            800² (H100, Taichi round kernels, float32 MLPs), first / most / budget 1 / 32 / 2²¹ took 12 rounds and
+            58 ms, 8 / 128 / 2²³ 5 rounds and 43 ms, though they marched 10.6M samples against 9.7M. Growing ``k``
+            to fill the budget (3–4 rounds) marched up to 12.7M samples and was slower.
         round_samples: most samples marched in one round over all rays (bounds memory; rays are taken this many
             at a time). ``None``: 2²³ on CUDA (all rays of an 800² frame at once), 2¹⁸ on the CPU.
         half_precision: evaluate the field's MLPs in float16 (``torch.autocast``), as instant-NGP's fully fused MLPs
             do; the hash encoding, σ's exponential and the compositing stay float32. ``None``: for an
             :class:`pienerf.nerf.NGPField` on CUDA. On the lego at 800² it changed pixels by at most 6e-4 (PSNR
             90 dB against the float32 image) and cut a frame from 44.8 to 39.3 ms on an H100.
+        framework: ``"taichi"`` or ``"warp"``, the kernels of a round (march, warp, composite); ``None``:
+            :func:`kernels.backend.default_framework` (Warp on CUDA, where a frame issues dozens of launches and a
+            Warp launch costs the host less than a Taichi one).
 
     Attributes:
         stats: :class:`RenderStats` of the last :meth:`render`.
@@ -391,6 +395,7 @@ class DeformedRenderer:
         steps_per_round: int | None = None,
         round_samples: int | None = None,
         half_precision: bool | None = None,
+        framework: str | None = None,
     ):
         if not cutoff_scale > 0:
             raise ValueError(f"cutoff_scale must be positive (cuboid half-diagonals), got {cutoff_scale}")
@@ -413,6 +418,9 @@ class DeformedRenderer:
         if half_precision is None:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
+        self.framework = backend.check_framework(framework)
+        self._rest_occupancy = grid.occupied.to(device=device, dtype=torch.uint8).contiguous()
+        self._rest_aabb = grid.aabb.detach().float().cpu()
         if self.half_precision and device.type != "cuda":
             raise ValueError("half_precision needs the CUDA backend (float16 matmuls); pass half_precision=False")
         self.stats = RenderStats()
@@ -574,44 +582,60 @@ class DeformedRenderer:
             while rays.shape[0] > 0:
                 k = max(1, min(k, budget // rays.shape[0]))
                 batch = march_resume(
-                    march, origins, directions, rays, grid, aabb, self.min_step, samples_per_ray=k, **settings
+                    march,
+                    origins,
+                    directions,
+                    rays,
+                    grid,
+                    aabb,
+                    self.min_step,
+                    samples_per_ray=k,
+                    framework=self.framework,
+                    **settings,
                 )
-                # One host sync per round learns how many samples were marched and how many rays go on (the others'
+                rest, keep = warp_round(
+                    batch.positions,
+                    batch.counts,
+                    frame.ip_hash,
+                    frame.ip_displacement,
+                    frame.F,
+                    frame.grad_F,
+                    self.cutoff,
+                    self._rest_occupancy,
+                    self._rest_aabb,
+                    max_radius=self._knn_radius,
+                    quadratic=mode == "quadratic",
+                    iterations=self.newton_iterations,
+                    tolerance=self.newton_tolerance,
+                    framework=self.framework,
+                )
+                # The round's one host sync: samples marched, samples worth a query, and rays going on (the others'
                 # marches are over: box exit, far, max_samples or opaque).
                 going_on = batch.counts == k
-                marched, alive = torch.stack([batch.counts.sum(), going_on.sum()]).tolist()
+                marched, kept, alive = torch.stack([batch.counts.sum(), keep.sum(), going_on.sum()]).tolist()
                 self.stats.rounds += 1
                 self.stats.samples_marched += marched
-                if marched > 0:
-                    filled = torch.arange(k, device=device) < batch.counts[:, None]  # [A, k]
-                    slots = _compact(filled.view(-1), marched)  # marched slots of the round's [A · k]
-                    rest, keep = self._warp_samples(batch.positions.view(-1, 3)[slots], frame, mode)
-                    self._shade_round(sums, rays, k, slots, batch, rest, keep, encoded)
+                self.stats.samples_queried += kept
+                if kept > 0:
+                    self._shade_round(sums, rays, k, batch, rest, keep, kept, encoded)
                 rays = rays[_compact(going_on, alive)]
                 k = min(2 * k, self.steps_per_round)
         return sums.color, sums.opacity, sums.depth
 
-    def _shade_round(self, sums, rays, k, slots, batch, rest, keep, encoded):
-        """Query the field at a round's warped samples worth it and composite them onto the rays' sums.
+    def _shade_round(self, sums, rays, k, batch, rest, keep, kept, encoded):
+        """Query the field at a round's ``kept`` samples worth it (``keep [A · k]``) and composite them onto the rays'
+        sums.
 
-        Samples whose rest position is empty (``keep`` False) have σ = 0: compositing them changes nothing (α = 0
-        exactly, T unchanged), so a host sync counts the kept ones and only those are queried and composited, in
-        ray order. (Querying every marched sample with σ zeroed instead saves that sync but not the time: on the
-        lego at 800² it queried 10.9M samples for 8.5M, and took 38.7 ms per frame against 35.7 ms on an H100.)
+        The other samples have σ = 0 (no IP reaches them or their rest cell is empty): compositing them changes
+        nothing (α = 0 exactly, T unchanged), so only the kept ones are queried and composited, in ray order.
+        (Querying every marched sample with σ zeroed instead saves the count but not the time: on the lego at 800² it
+        queried 10.9M samples for 8.5M, and took 38.7 ms per frame against 35.7 ms on an H100.)
         """
-        kept = int(keep.sum())
-        self.stats.samples_queried += kept
-        if kept == 0:
-            return
-        chosen = _compact(keep, kept)
-        index = slots[chosen]  # the kept samples' slots of the round's [A · k]
-        device = rest.device
-        counts = torch.zeros(rays.shape[0] * k, dtype=torch.int32, device=device)
-        counts[index] = 1
-        offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=device)
-        offsets[1:] = torch.cumsum(counts.view(-1, k).sum(1), 0)
+        index = _compact(keep, kept)  # the kept samples' slots of the round's [A · k], in ray order
+        offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
+        offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
         with self._precision():
-            sigma, rgb = self.field.radiance(rest[chosen], encoded[rays[index // k]])
+            sigma, rgb = self.field.radiance(rest[index], encoded.index_select(0, rays[index // k]))
         composite_accumulate(
             sums,
             rays,
@@ -621,26 +645,8 @@ class DeformedRenderer:
             batch.depths.view(-1)[index],
             offsets,
             transmittance_threshold=self.field.config.transmittance_threshold,
+            framework=self.framework,
         )
-
-    def _warp_samples(self, positions, frame: DeformedFrame, mode: str):
-        """Rest positions ``[S, 3]`` of deformed-space samples (Eq. 19–21) and whether each is worth a NeRF query
-        ``[S]``: False where no IP reaches it or its rest position lies in an empty rest cell (σ = 0 there)."""
-        neighbours, distances = frame.ip_hash.knn(positions, 3, max_radius=self._knn_radius)
-        warped = warp_to_rest(
-            positions,
-            neighbours,
-            distances,
-            frame.ip_deformed,
-            frame.ip_displacement,
-            frame.F,
-            frame.grad_F,
-            self.cutoff,
-            quadratic=mode == "quadratic",
-            iterations=self.newton_iterations,
-            tolerance=self.newton_tolerance,
-        )
-        return warped.rest, warped.valid & self.grid.is_occupied(warped.rest)
 
     def _ground(self, origins, directions, t_ground, hits_plane, frame: DeformedFrame, mode: str, ground: GroundPlane):
         """Shaded ground colour per camera ray (NaN off the ground square), its light transmittance, and the

@@ -12,8 +12,8 @@
   (:func:`pienerf.nerf_backend.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
   solid the NeRF shows (:class:`pienerf.nerf_backend.NerfSceneDensity`) and 32 kernels, as the lego scenario,
   seen from 4.2 m. A trained NeRF matters: early ray termination only saves samples behind real opacity. Timed:
-  the frame state (deformed IPs, forward-warped occupancy) and the rounds of march, kNN, warp, NeRF queries and
-  compositing. Recorded besides: ``samples_marched``, ``samples_queried`` and ``rounds`` of a frame, and
+  the frame state (deformed IPs, forward-warped occupancy) and the rounds of march, nearest IPs, warp, NeRF queries
+  and compositing. Recorded besides: ``samples_marched``, ``samples_queried`` and ``rounds`` of a frame, and
   ``samples_full_march``, what one full march of every ray emits (what a renderer without early termination
   warps). The reference renders without early termination, in torch: a full march per 4096 rays, every sample
   warped by
@@ -27,13 +27,18 @@ Measured on this project's shared 2-core CPU under load from other jobs: ``warp_
 the renderer that marched, warped and queried every sample per 4096 rays: 0.58 s and 6.1 s for it, 0.21 s and
 1.49 s for it with torch on one thread, 0.22 s and 1.44 s here; so on this CPU nearly all the gain is the torch
 threading, as the fitted teapot's NeRF is too translucent for early termination to save much (5 % of the samples).
-The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² frame cost launches and syncs.
+The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² frame cost launches and syncs. With
+the round kernels of the warp in one call (:func:`kernels.warp_rays.warp_round`) and one sync a round, paper took
+1.11 s (5 reps, run alone).
 
-On an H100 (``--device cuda --size paper --reps 11``, lego at 800²): 37.0 ms per frame, 27.1 frames/s, 55x the
-reference (2.03 s); 5 rounds, 10.9M samples marched where a full march has 14.0M, 8.5M queried. The old renderer
-took 551 ms. What is left is mostly launch overhead: synced phase by phase, a round's three Taichi launches (march,
-warp, composite) cost ~1 ms each on that host whatever their size, and the GPU idles between them; the float16 MLPs
-take ~9 ms, the kNN ~4 ms, the hash encoding ~2 ms of GPU time per frame.
+On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 32.7 to 35.4 ms per frame, 28.3 to 30.6
+frames/s over four machine starts (35.3 and 35.4 ms in two runs on one of them), 57x the reference (2.0 s); 5
+rounds, 10.8M samples marched where a full march has 14.0M, 8.4M queried. The old renderer took 551 ms; rounds with
+Taichi kernels 37.0 ms. The round's kernels now run in Warp on CUDA (:func:`kernels.backend.default_framework`),
+with one host sync per round. The frame is bound by the host: the GPU is busy ~26 ms of it (profiled: nearest IPs
+4.6 ms, warp 2.3 ms, march 1.7 ms, float16 MLPs ~5 ms, the hash encoding 1.9 ms, the gather of the rays' encoded
+directions 5 ms), and the rest is Python and launches: ~40 torch operations and four kernel launches a round, which
+is why the figure follows the host the machine happens to have.
 """
 
 from __future__ import annotations

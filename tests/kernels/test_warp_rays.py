@@ -7,8 +7,10 @@ import pytest
 import torch
 
 from kernels import backend
+from kernels.backend import FRAMEWORKS
 from kernels.reference.warp_rays import quadratic_map_torch, warp_to_rest_torch
-from kernels.warp_rays import warp_to_rest
+from kernels.spatial_hash import SpatialHash
+from kernels.warp_rays import warp_round, warp_to_rest
 
 SPACING = 0.05  # metres between IPs of the synthetic sets below
 
@@ -128,6 +130,83 @@ def test_singular_jacobian_falls_back(device):
     assert torch.allclose(out.rest.double().cpu()[0], x_tilde[0] - displacement[0], atol=1e-6)
     assert torch.allclose(out.rest.double().cpu()[1], rest[1] + torch.tensor([-0.03, 0.0, 0.0]), atol=1e-6)
     assert torch.allclose(out.rest.double().cpu(), ref[0], atol=1e-6)
+
+
+def _round_inputs(rays: int, k: int, seed: int):
+    """A renderer's round over the IPs of :func:`_ips`: ``[A, k, 3]`` samples with ``counts`` (some rays full, some
+    empty, the rest in between) and a random rest occupancy grid over a box around the IPs."""
+    rest, deformed, displacement, F, grad_F = _ips(64, seed=seed)
+    g = torch.Generator().manual_seed(seed + 1)
+    lo, hi = deformed.amin(0) - SPACING, deformed.amax(0) + SPACING
+    samples = lo + (hi - lo) * torch.rand(rays, k, 3, generator=g, dtype=torch.float64)
+    counts = torch.randint(0, k + 1, (rays,), generator=g, dtype=torch.int32)
+    counts[:3] = torch.tensor([0, k, 1], dtype=torch.int32)
+    occupancy = torch.rand(12, 10, 14, generator=g) < 0.6
+    box = torch.stack([rest.amin(0) - SPACING, rest.amax(0) + 0.5 * SPACING]).float()
+    cutoff = torch.full((rest.shape[0],), 1.2 * SPACING, dtype=torch.float64)
+    dev = backend.torch_device()
+    samples_d, deformed_d, displacement_d, F_d, grad_F_d, cutoff_d = _to_device(
+        samples, deformed, displacement, F, grad_F, cutoff
+    )
+    return samples_d, counts.to(dev), deformed_d, displacement_d, F_d, grad_F_d, cutoff_d, occupancy.to(dev), box
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_round_warp_matches_knn_warp_and_occupancy(device, framework):
+    """A round's fused warp (nearest IPs, Taylor inversion, rest-occupancy test) gives, on every filled slot, what
+    :meth:`SpatialHash.knn`, :func:`warp_to_rest` and the grid lookup give one after the other; empty slots are
+    never kept."""
+    samples, counts, deformed, displacement, F, grad_F, cutoff, occupancy, box = _round_inputs(300, 6, seed=7)
+    ip_hash = SpatialHash(deformed, 0.5 * SPACING)
+    radius = 4 * SPACING
+    k = samples.shape[1]
+    filled = (torch.arange(k, device=counts.device) < counts[:, None]).view(-1)
+    positions = samples.view(-1, 3)[filled].contiguous()
+    neighbours, distances = ip_hash.knn(positions, 3, max_radius=radius)
+    for quadratic in (True, False):
+        rest, keep = warp_round(
+            samples, counts, ip_hash, displacement, F, grad_F, cutoff, occupancy, box,
+            max_radius=radius, quadratic=quadratic, framework=framework,
+        )
+        assert rest.shape == (samples.shape[0] * k, 3) and keep.dtype == torch.bool
+        assert not bool(keep[~filled].any()), "empty slots are never kept"
+        expected = warp_to_rest(
+            positions, neighbours, distances, deformed, displacement, F, grad_F, cutoff, quadratic=quadratic
+        )
+        torch.testing.assert_close(rest[filled], expected.rest, rtol=0.0, atol=1e-6 * SPACING)
+        resolution = torch.tensor(occupancy.shape, device=rest.device)
+        cell = torch.floor((expected.rest - box[0].to(rest.device)) / ((box[1] - box[0]).to(rest.device) / resolution))
+        inside = ((cell >= 0) & (cell < resolution)).all(-1)
+        cell = torch.minimum(cell.long().clamp_min(0), resolution - 1)
+        occupied = inside & occupancy[cell[:, 0], cell[:, 1], cell[:, 2]]
+        assert torch.equal(keep[filled], expected.valid & occupied)
+        valid, kept = float(expected.valid.float().mean()), float(keep[filled].float().mean())
+        assert 0.2 < kept < valid < 0.95, f"the cutoff and the grid must both drop samples ({valid}, {kept})"
+
+
+def test_round_warp_frameworks_agree_and_keep_zero_deformation_exact(device):
+    """Taichi and Warp give the same round; with zero deformation both return every sample bit for bit."""
+    samples, counts, deformed, displacement, F, grad_F, cutoff, occupancy, box = _round_inputs(200, 5, seed=9)
+    ip_hash = SpatialHash(deformed, 0.5 * SPACING)
+    out = {
+        framework: warp_round(
+            samples, counts, ip_hash, displacement, F, grad_F, cutoff, occupancy, box,
+            max_radius=4 * SPACING, framework=framework,
+        )
+        for framework in FRAMEWORKS
+    }
+    torch.testing.assert_close(out["warp"][0], out["taichi"][0], rtol=0.0, atol=1e-6 * SPACING)
+    assert torch.equal(out["warp"][1], out["taichi"][1])
+
+    K = deformed.shape[0]
+    identity = torch.eye(3, device=F.device).expand(K, 3, 3).contiguous()
+    filled = (torch.arange(samples.shape[1], device=counts.device) < counts[:, None]).view(-1)
+    for framework in FRAMEWORKS:
+        rest, _ = warp_round(
+            samples, counts, ip_hash, torch.zeros_like(displacement), identity, torch.zeros_like(grad_F),
+            torch.full_like(cutoff, 1.0), occupancy, box, max_radius=4 * SPACING, framework=framework,
+        )
+        assert torch.equal(rest[filled], samples.view(-1, 3)[filled]), framework
 
 
 def test_bad_arguments_raise_clear_errors(device):

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from kernels import backend
+from kernels.backend import FRAMEWORKS
 from kernels.raycast import MeshBVH, shade
 from kernels.volume_render import composite_forward, march_rays
 from kernels.warp_rays import warp_to_rest
@@ -79,8 +80,13 @@ def _look_at(eye, target, up, resolution: int, fov: float = 0.5) -> Cameras:
     return Cameras(c2w[None], focal, focal.clone(), centre, centre.clone(), resolution, resolution)
 
 
-def test_zero_deformation_renders_the_undeformed_nerf(teapot):
-    model, _, renderer, _ = teapot
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_zero_deformation_renders_the_undeformed_nerf(teapot, framework):
+    """At q = 0 the warped render is the undeformed NeRF's: bit for bit with the Taichi kernels (the very march and
+    compositing loops of :func:`pienerf.nerf.render_rays`); with the Warp kernels to float rounding (their ``exp``,
+    and on CUDA their fused multiply-adds, may differ from Taichi's in the last bit)."""
+    model, field, renderer, _ = teapot
+    renderer = DeformedRenderer(field, renderer.grid, model, framework=framework)
     cameras = scene_cameras("teapot", views=4, resolution=200)
     q = torch.zeros(model.shape_count, 3, dtype=torch.float64, device=model.device)
     rest = renderer.render(q, cameras, view=1, mode="rest", resolution=48)
@@ -88,7 +94,9 @@ def test_zero_deformation_renders_the_undeformed_nerf(teapot):
     for mode in ("quadratic", "linear"):
         warped = renderer.render(q, cameras, view=1, mode=mode, resolution=48)
         for key in ("rgb", "alpha", "depth"):
-            assert torch.equal(warped[key], rest[key]), f"{mode} warp at q = 0 changed {key}"
+            if framework == "taichi":
+                assert torch.equal(warped[key], rest[key]), f"{mode} warp at q = 0 changed {key}"
+            torch.testing.assert_close(warped[key], rest[key], rtol=0.0, atol=1e-5, msg=f"{mode} warp, {key}")
 
 
 def _full_march(renderer: DeformedRenderer, q: torch.Tensor, origins: torch.Tensor, directions: torch.Tensor):
@@ -125,10 +133,12 @@ def _full_march(renderer: DeformedRenderer, q: torch.Tensor, origins: torch.Tens
     return color, opacity, depth, samples.positions.shape[0]
 
 
-def test_rendering_in_rounds_matches_one_full_march(teapot):
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_rendering_in_rounds_matches_one_full_march(teapot, framework):
     """Rounds with early termination give the image of one full march and composite, for fewer samples; so do
-    other round sizes and memory budgets."""
+    other round sizes and memory budgets, in either framework."""
     model, field, renderer, q = teapot
+    renderer = DeformedRenderer(field, renderer.grid, model, framework=framework)
     cameras = scene_cameras("teapot", views=4, resolution=40)
     origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(1))
     color, opacity, depth, marched = _full_march(renderer, q, origins, directions)
@@ -136,17 +146,21 @@ def test_rendering_in_rounds_matches_one_full_march(teapot):
     black = (0.0, 0.0, 0.0)
     out = renderer.render(q, rays=(origins, directions), background=black)
     stats = renderer.stats
-    torch.testing.assert_close(out["rgb"], color, rtol=0.0, atol=1e-6)
-    torch.testing.assert_close(out["alpha"], opacity, rtol=0.0, atol=1e-6)
+    atol = 1e-6 if framework == "taichi" else 1e-5  # the full march is Taichi's (test_zero_deformation_…)
+    torch.testing.assert_close(out["rgb"], color, rtol=0.0, atol=atol)
+    torch.testing.assert_close(out["alpha"], opacity, rtol=0.0, atol=atol)
     expected_depth = torch.where(opacity > 1e-6, depth / opacity.clamp_min(1e-6), 0.0)
     torch.testing.assert_close(out["depth"], expected_depth, rtol=0.0, atol=1e-5)
     assert 1 < stats.rounds < 20
     assert stats.samples_queried <= stats.samples_marched < 0.9 * marched, f"{stats} against {marched} marched"
 
     variants = (
-        DeformedRenderer(field, renderer.grid, model, steps_per_round=3, round_samples=300),
-        DeformedRenderer(field, renderer.grid, model, steps_per_round=128),
-        DeformedRenderer(field, renderer.grid, model, first_round_steps=8, steps_per_round=128, round_samples=4096),
+        DeformedRenderer(field, renderer.grid, model, steps_per_round=3, round_samples=300, framework=framework),
+        DeformedRenderer(field, renderer.grid, model, steps_per_round=128, framework=framework),
+        DeformedRenderer(
+            field, renderer.grid, model, first_round_steps=8, steps_per_round=128, round_samples=4096,
+            framework=framework,
+        ),
     )
     for variant in variants:
         again = variant.render(q, rays=(origins, directions), background=black)
