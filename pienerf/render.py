@@ -62,7 +62,7 @@ import torch
 
 from kernels import backend
 from kernels.spatial_hash import SpatialHash
-from kernels.volume_render import composite_accumulate, composite_start, march_resume, march_start
+from kernels.volume_render import composite_accumulate, composite_start, gather_ray_rows, march_resume, march_start
 from kernels.warp_rays import warp_round
 from pienerf.data import Cameras
 from pienerf.density import sigmoid_density
@@ -635,7 +635,7 @@ class DeformedRenderer:
         offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
         offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
         with self._precision():
-            sigma, rgb = self.field.radiance(rest[index], encoded.index_select(0, rays[index // k]))
+            sigma, rgb = self.field.radiance(rest[index], gather_ray_rows(encoded, rays, index, k))
         composite_accumulate(
             sums,
             rays,

@@ -31,14 +31,14 @@ The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² fram
 the round kernels of the warp in one call (:func:`kernels.warp_rays.warp_round`) and one sync a round, paper took
 1.11 s (5 reps, run alone).
 
-On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 32.7 to 35.4 ms per frame, 28.3 to 30.6
-frames/s over four machine starts (35.3 and 35.4 ms in two runs on one of them), 57x the reference (2.0 s); 5
-rounds, 10.8M samples marched where a full march has 14.0M, 8.4M queried. The old renderer took 551 ms; rounds with
-Taichi kernels 37.0 ms. The round's kernels now run in Warp on CUDA (:func:`kernels.backend.default_framework`),
-with one host sync per round. The frame is bound by the host: the GPU is busy ~26 ms of it (profiled: nearest IPs
-4.6 ms, warp 2.3 ms, march 1.7 ms, float16 MLPs ~5 ms, the hash encoding 1.9 ms, the gather of the rays' encoded
-directions 5 ms), and the rest is Python and launches: ~40 torch operations and four kernel launches a round, which
-is why the figure follows the host the machine happens to have.
+On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 31.8 ms and 29.2 ms per frame in two runs
+(31.5 and 34.3 frames/s; min 28.0 ms, max 35.0 ms), 63-69x the reference (2.0 s); 5 rounds, 11.0M samples marched
+where a full march has 14.0M, 8.6M queried. The old renderer took 551 ms; rounds with Taichi kernels 37.0 ms, with
+the Warp ones 32.7-35.4 ms over four machine starts before the rays' encoded directions were gathered by a kernel of
+their own (:func:`kernels.volume_render.gather_ray_rows`: 0.5 ms of a frame where torch's gather took 5 ms). Of
+the frame the GPU is busy ~22 ms (profiled: nearest IPs 4.9 ms, warp 2.4 ms, march 1.8 ms, float16 MLPs ~5 ms,
+the hash encoding 1.9 ms); the rest is the host's Python and launches, ~40 torch operations and five kernel launches
+a round, so the figure moves with the host the machine happens to have.
 """
 
 from __future__ import annotations

@@ -13,6 +13,7 @@ from kernels.volume_render import (
     composite_backward,
     composite_forward,
     composite_start,
+    gather_ray_rows,
     march_rays,
     march_resume,
     march_start,
@@ -354,3 +355,21 @@ def test_bad_inputs_raise_clear_errors(device):
     sums = composite_start(2, sigmas.device)
     with pytest.raises(ValueError, match="one per CSR row"):
         composite_accumulate(sums, torch.arange(3, device=sigmas.device), sigmas, colors, deltas, depths, offsets)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.float32])
+def test_gather_ray_rows_kernel_matches_indexing(device, dtype):
+    """Each slot's row of a per-ray table: the word-copy kernel gives what indexing gives, bit for bit."""
+    generator = torch.Generator().manual_seed(21)
+    dev = backend.torch_device()
+    table = torch.randn(50, 16, generator=generator).to(device=dev, dtype=dtype)
+    rays = torch.randperm(50, generator=generator)[:30].to(dev)
+    k = 7
+    slots = torch.sort(torch.randperm(30 * k, generator=generator)[:120]).values.to(dev)
+    expected = table[rays[slots // k]]
+    assert torch.equal(gather_ray_rows(table, rays, slots, k, kernel=True), expected)
+    assert torch.equal(gather_ray_rows(table, rays, slots, k, kernel=False), expected)
+    odd = table[:, :3].contiguous().half()  # 6-byte rows: indexing, unless the kernel is asked for
+    torch.testing.assert_close(gather_ray_rows(odd, rays, slots, k), odd[rays[slots // k]])
+    with pytest.raises(ValueError, match="whole 4-byte rows"):
+        gather_ray_rows(odd, rays, slots, k, kernel=True)
