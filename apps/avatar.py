@@ -68,6 +68,13 @@ def _parser() -> argparse.ArgumentParser:
                 default=None,
                 help="Algorithm 1's Adam iterations (default 100, the paper's)",
             )
+        if name in ("track", "pipeline"):
+            stage.add_argument(
+                "--iso-tolerance",
+                type=float,
+                default=None,
+                help="relative edge-length change the isometry loss lets pass (default 0, the paper's Eq. 2)",
+            )
         if name == "estimate":
             stage.add_argument("--exact", action="store_true", help="fit the true meshes instead of the tracked ones")
     return parser
@@ -139,6 +146,9 @@ def stage_command(args: argparse.Namespace) -> None:
         if args.fd_iterations < 1:
             raise ValueError(f"--fd-iterations must be at least 1, got {args.fd_iterations}")
         config = dataclasses.replace(config, fd_iterations=args.fd_iterations)
+    if getattr(args, "iso_tolerance", None) is not None:
+        tracking = dataclasses.replace(config.tracking, iso_tolerance=args.iso_tolerance)  # checks the range
+        config = dataclasses.replace(config, tracking=tracking)
     backend.init(args.device)
     progress = pipeline.stderr_progress
     if args.command == "pipeline":

@@ -77,3 +77,9 @@ def test_mismatched_frame_counts_are_refused(experiment, tmp_path):
     result = _run("estimate", "--smoke", "--out", str(broken), "--device", "cpu")
     assert result.returncode == 2
     assert "3 frames" in result.stderr and "has 6" in result.stderr
+
+
+def test_isometry_tolerance_out_of_range_is_refused(tmp_path):
+    result = _run("track", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--iso-tolerance", "1.5")
+    assert result.returncode == 2
+    assert "iso_tolerance" in result.stderr and "Traceback" not in result.stderr
