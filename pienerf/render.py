@@ -63,7 +63,7 @@ import torch
 from kernels import backend
 from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import composite_accumulate, composite_start, gather_ray_rows, march_resume, march_start
-from kernels.warp_rays import warp_round
+from kernels.warp_rays import splat_occupancy, warp_round
 from pienerf.data import Cameras
 from pienerf.density import sigmoid_density
 from pienerf.model import QGMLSModel
@@ -77,7 +77,6 @@ __all__ = [
     "GroundPlane",
     "MeshAlbedoField",
     "RenderStats",
-    "splat_occupancy",
 ]
 
 _COLOR_RADIUS = 0.02
@@ -252,67 +251,6 @@ class DeformedFrame:
     ip_hash: SpatialHash
     aabb: torch.Tensor
     occupancy: torch.Tensor
-
-
-def splat_occupancy(
-    cells_lo: torch.Tensor,
-    cell_size: torch.Tensor,
-    nearest_ip: torch.Tensor,
-    ip_rest: torch.Tensor,
-    ip_displacement: torch.Tensor,
-    F: torch.Tensor,
-    grad_F: torch.Tensor,
-    aabb: torch.Tensor,
-    shape: tuple[int, int, int],
-) -> torch.Tensor:
-    """Forward-warp occupied rest cells into a deformed-space grid (Eq. 19 in the explicit direction).
-
-    Each cell's corners x map to x + u_k + (F_k − I) d + ½ ∇F_k : d d, d = x − x_k, about the cell's nearest
-    rest IP k; every deformed cell the mapped corners' bounding box overlaps (shrunk by 1e-4 of a cell, so a
-    cell mapped onto itself marks only itself) is marked, at most 3 per axis per cell. The boxes are summed into a
-    difference array (one scatter per box corner and three running sums), not enumerated cell by cell.
-
-    Args:
-        cells_lo: ``[C, 3]`` lower corners of the occupied rest cells, metres.
-        cell_size: ``[3]`` rest cell edges, metres.
-        nearest_ip: int64 ``[C]`` nearest rest IP of each cell.
-        ip_rest, ip_displacement: ``[K, 3]`` x_k and u(x_k), metres.
-        F, grad_F: ``[K, 3, 3]`` and ``[K, 3, 3, 3]`` at the IPs.
-        aabb: ``[2, 3]`` box of the deformed grid, metres.
-        shape: cells of the deformed grid per axis.
-
-    Returns:
-        bool ``[Gx, Gy, Gz]``.
-    """
-    corners = torch.tensor(
-        [[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=cells_lo.dtype, device=cells_lo.device
-    )
-    x = cells_lo[:, None, :] + corners * cell_size  # [C, 8, 3]
-    d = x - ip_rest[nearest_ip][:, None, :]
-    strain = F[nearest_ip] - torch.eye(3, dtype=F.dtype, device=F.device)  # [C, 3, 3]
-    moved = x + ip_displacement[nearest_ip][:, None, :] + d @ strain.transpose(1, 2)
-    dd = (d[..., :, None] * d[..., None, :]).flatten(2)  # [C, 8, 9]: d_b d_e
-    moved = moved + 0.5 * (dd @ grad_F[nearest_ip].flatten(2).transpose(1, 2))
-    dims = torch.tensor(shape, device=cells_lo.device)
-    deformed_cell = (aabb[1] - aabb[0]) / dims
-    margin = 1e-4 * deformed_cell
-    first = torch.floor((moved.amin(1) - aabb[0] + margin) / deformed_cell).long()
-    last = torch.floor((moved.amax(1) - aabb[0] - margin) / deformed_cell).long()
-    last = torch.minimum(last, first + 2)
-    # Mark the union of the boxes [first, last] (clipped to the grid) with a difference array: +1 / −1 at each box's
-    # eight corners (inclusion–exclusion), then running sums along the three axes count the boxes over each cell.
-    first, last = torch.minimum(first.clamp_min(0), dims), torch.minimum(last + 1, dims).clamp_min(0)
-    weight = (first < last).all(-1).to(torch.int32)  # boxes wholly outside the grid add nothing
-    strides = ((shape[1] + 1) * (shape[2] + 1), shape[2] + 1, 1)
-    counts = torch.zeros((shape[0] + 1) * (shape[1] + 1) * (shape[2] + 1), dtype=torch.int32, device=first.device)
-    for corner in range(8):
-        upper = [(corner >> (2 - axis)) & 1 for axis in range(3)]
-        index = sum((last if upper[axis] else first)[:, axis] * strides[axis] for axis in range(3))
-        counts.index_add_(0, index, -weight if sum(upper) % 2 else weight)
-    counts = counts.view(shape[0] + 1, shape[1] + 1, shape[2] + 1)
-    for axis in range(3):
-        counts = counts.cumsum(axis, dtype=torch.int32)
-    return counts[: shape[0], : shape[1], : shape[2]] > 0
 
 
 def _compact(mask: torch.Tensor, count: int) -> torch.Tensor:

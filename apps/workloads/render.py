@@ -29,16 +29,17 @@ the renderer that marched, warped and queried every sample per 4096 rays: 0.58 s
 threading, as the fitted teapot's NeRF is too translucent for early termination to save much (5 % of the samples).
 The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² frame cost launches and syncs. With
 the round kernels of the warp in one call (:func:`kernels.warp_rays.warp_round`) and one sync a round, paper took
-1.11 s (5 reps, run alone).
+1.11 s (5 reps, run alone), and 1.08 s with the occupancy splat as a kernel.
 
-On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 31.8 ms and 29.2 ms per frame in two runs
-(31.5 and 34.3 frames/s; min 28.0 ms, max 35.0 ms), 63-69x the reference (2.0 s); 5 rounds, 11.0M samples marched
-where a full march has 14.0M, 8.6M queried. The old renderer took 551 ms; rounds with Taichi kernels 37.0 ms, with
-the Warp ones 32.7-35.4 ms over four machine starts before the rays' encoded directions were gathered by a kernel of
-their own (:func:`kernels.volume_render.gather_ray_rows`: 0.5 ms of a frame where torch's gather took 5 ms). Of
-the frame the GPU is busy ~22 ms (profiled: nearest IPs 4.9 ms, warp 2.4 ms, march 1.8 ms, float16 MLPs ~5 ms,
-the hash encoding 1.9 ms); the rest is the host's Python and launches, ~40 torch operations and five kernel launches
-a round, so the figure moves with the host the machine happens to have.
+On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 29.6 ms per frame, 33.7 frames/s (min 29.0,
+max 31.2 ms), 67x the reference (1.98 s); 5 rounds, 10.8M samples marched where a full march has 14.0M, 8.4M
+queried. A second run on the same machine gave 39.7 ms (min 30.6 ms) while its reference also slowed, to 2.22 s:
+the figure follows the host, and another machine start gave 31.8 and 29.2 ms before the occupancy splat became a
+kernel. History: the renderer without rounds took 551 ms; rounds with Taichi kernels 37.0 ms; with the Warp ones
+32.7-35.4 ms over four machine starts, before the rays' encoded directions were gathered by a kernel of their own
+(:func:`kernels.volume_render.gather_ray_rows`: 0.5 ms of a frame where torch's gather took 5 ms). The GPU is busy
+~22 ms of a frame (profiled: nearest IPs 4.9 ms, warp 2.4 ms, march 1.8 ms, float16 MLPs ~5 ms, the hash encoding
+1.9 ms); the rest is the host's Python and launches, ~40 torch operations and five kernel launches a round.
 """
 
 from __future__ import annotations

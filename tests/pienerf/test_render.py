@@ -16,11 +16,11 @@ from kernels import backend
 from kernels.backend import FRAMEWORKS
 from kernels.raycast import MeshBVH, shade
 from kernels.volume_render import composite_forward, march_rays
-from kernels.warp_rays import warp_to_rest
+from kernels.warp_rays import splat_occupancy, warp_to_rest
 from pienerf.data import Cameras
 from pienerf.materials import Material
 from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.render import DeformedRenderer, GroundPlane, MeshAlbedoField, splat_occupancy
+from pienerf.render import DeformedRenderer, GroundPlane, MeshAlbedoField
 from pienerf.sampling import grid_sample
 from pienerf.scenes import scene_cameras, scene_density
 from pienerf.solver import ControlQGMLS, PointTargets, SolverConfig, SolverQGMLS
@@ -171,7 +171,7 @@ def test_rendering_in_rounds_matches_one_full_march(teapot, framework):
 
 
 def test_splat_marks_every_cell_the_moved_boxes_overlap(device):
-    """The difference-array splat marks exactly the cells a per-cell enumeration of each moved cell's box marks
+    """The splat kernel marks exactly the cells a per-cell enumeration of each moved cell's box marks
     (at most 3 per axis, clipped to the grid), under a random smooth map, with boxes sticking out of the grid."""
     generator = torch.Generator().manual_seed(3)
     cell_size = torch.tensor([0.05, 0.04, 0.06], dtype=torch.float64)
