@@ -448,10 +448,7 @@ def warp_round(
             "need neighbours >= 1, iterations >= 1, tolerance > 0 and max_radius > 0, got "
             f"{neighbours}, {iterations}, {tolerance} and {max_radius}"
         )
-    _check_warp_arguments(
-        samples.view(-1, 3)[:0], torch.empty(0, neighbours, dtype=torch.int32, device=samples.device),
-        torch.empty(0, neighbours, device=samples.device), ip_hash.points, ip_displacement, F, grad_F, cutoff,
-    )
+    _check_ips(ip_hash.points, ip_displacement, F, grad_F, cutoff)
     grid = rest_occupancy.to(torch.uint8).contiguous()
     box = torch.as_tensor(rest_aabb, dtype=torch.float32).cpu()
     if grid.dim() != 3 or box.shape != (2, 3) or not bool((box[1] > box[0]).all()):
@@ -647,18 +644,32 @@ def splat_occupancy(
 
 def _check_warp_arguments(samples, neighbours, distances, ip_deformed, ip_displacement, F, grad_F, cutoff):
     count = samples.shape[0] if isinstance(samples, torch.Tensor) and samples.dim() == 2 else -1
-    ips = ip_deformed.shape[0] if isinstance(ip_deformed, torch.Tensor) and ip_deformed.dim() == 2 else -1
     width = neighbours.shape[1] if isinstance(neighbours, torch.Tensor) and neighbours.dim() == 2 else -1
-    expected = (
-        ("samples", samples, torch.float32, (count, 3)),
-        ("neighbours", neighbours, torch.int32, (count, width)),
-        ("distances", distances, torch.float32, (count, width)),
-        ("ip_deformed", ip_deformed, torch.float32, (ips, 3)),
-        ("ip_displacement", ip_displacement, torch.float32, (ips, 3)),
-        ("F", F, torch.float32, (ips, 3, 3)),
-        ("grad_F", grad_F, torch.float32, (ips, 3, 3, 3)),
-        ("cutoff", cutoff, torch.float32, (ips,)),
+    _check_tensors(
+        (
+            ("samples", samples, torch.float32, (count, 3)),
+            ("neighbours", neighbours, torch.int32, (count, width)),
+            ("distances", distances, torch.float32, (count, width)),
+        )
     )
+    _check_ips(ip_deformed, ip_displacement, F, grad_F, cutoff)
+    return count, width
+
+
+def _check_ips(ip_deformed, ip_displacement, F, grad_F, cutoff) -> None:
+    ips = ip_deformed.shape[0] if isinstance(ip_deformed, torch.Tensor) and ip_deformed.dim() == 2 else -1
+    _check_tensors(
+        (
+            ("ip_deformed", ip_deformed, torch.float32, (ips, 3)),
+            ("ip_displacement", ip_displacement, torch.float32, (ips, 3)),
+            ("F", F, torch.float32, (ips, 3, 3)),
+            ("grad_F", grad_F, torch.float32, (ips, 3, 3, 3)),
+            ("cutoff", cutoff, torch.float32, (ips,)),
+        )
+    )
+
+
+def _check_tensors(expected) -> None:
     for name, tensor, dtype, shape in expected:
         if not isinstance(tensor, torch.Tensor) or tensor.dtype != dtype:
             raise TypeError(f"{name} must be a {dtype} tensor {list(shape)}; convert it with .to({dtype})")
@@ -666,4 +677,3 @@ def _check_warp_arguments(samples, neighbours, distances, ip_deformed, ip_displa
             raise ValueError(
                 f"{name} must have shape {list(shape)} (S samples, N neighbours, K IPs), got {list(tensor.shape)}"
             )
-    return count, width

@@ -231,3 +231,19 @@ def test_bad_arguments_raise_clear_errors(device):
         warp_to_rest(**{**good, "neighbours": good["neighbours"].long()})
     with pytest.raises(ValueError, match="iterations >= 1"):
         warp_to_rest(**good, iterations=0)
+
+
+def test_round_warp_bad_arguments_raise_clear_errors(device):
+    samples, counts, deformed, displacement, F, grad_F, cutoff, occupancy, box = _round_inputs(20, 4, seed=13)
+    ip_hash = SpatialHash(deformed, 0.5 * SPACING)
+    args = (ip_hash, displacement, F, grad_F, cutoff, occupancy, box)
+    with pytest.raises(ValueError, match=r"samples must be float32 \[A, k, 3\]"):
+        warp_round(samples.view(-1, 3), counts, *args, max_radius=0.2)
+    with pytest.raises(ValueError, match="counts must be int32"):
+        warp_round(samples, counts.long(), *args, max_radius=0.2)
+    with pytest.raises(TypeError, match="F must be a torch.float32"):
+        warp_round(samples, counts, ip_hash, displacement, F.double(), grad_F, cutoff, occupancy, box, max_radius=0.2)
+    with pytest.raises(ValueError, match="max_radius"):
+        warp_round(samples, counts, *args, max_radius=0.0)
+    with pytest.raises(ValueError, match="unknown framework"):
+        warp_round(samples, counts, *args, max_radius=0.2, framework="cuda")
