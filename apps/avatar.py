@@ -73,7 +73,19 @@ def _parser() -> argparse.ArgumentParser:
                 "--iso-tolerance",
                 type=float,
                 default=None,
-                help="relative edge-length change the isometry loss lets pass (default 0, the paper's Eq. 2)",
+                help="relative edge-length change the isometry loss lets pass (default 0.05; 0 is the paper's Eq. 2)",
+            )
+            stage.add_argument(
+                "--lambda-normal",
+                type=float,
+                default=None,
+                help="weight of the normal loss, Eq. 3 (default 0.01 for the coarse skirt; the paper's is 0.1)",
+            )
+            stage.add_argument(
+                "--face-subdivisions",
+                type=int,
+                default=None,
+                help="midpoint subdivisions of each face for its Gaussians: 4^L per face (default 2; paper: 0)",
             )
         if name == "estimate":
             stage.add_argument("--exact", action="store_true", help="fit the true meshes instead of the tracked ones")
@@ -146,9 +158,13 @@ def stage_command(args: argparse.Namespace) -> None:
         if args.fd_iterations < 1:
             raise ValueError(f"--fd-iterations must be at least 1, got {args.fd_iterations}")
         config = dataclasses.replace(config, fd_iterations=args.fd_iterations)
-    if getattr(args, "iso_tolerance", None) is not None:
-        tracking = dataclasses.replace(config.tracking, iso_tolerance=args.iso_tolerance)  # checks the range
-        config = dataclasses.replace(config, tracking=tracking)
+    changes = {
+        name: getattr(args, name)
+        for name in ("iso_tolerance", "lambda_normal", "face_subdivisions")
+        if getattr(args, name, None) is not None
+    }
+    if changes:
+        config = dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, **changes))  # range checks
     backend.init(args.device)
     progress = pipeline.stderr_progress
     if args.command == "pipeline":

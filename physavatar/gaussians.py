@@ -27,6 +27,7 @@ from kernels.image_metrics import ssim
 
 __all__ = [
     "GaussianAppearance",
+    "Subdivision",
     "face_frames",
     "longest_edges",
     "photometric_loss",
@@ -105,6 +106,65 @@ class GaussianAppearance:
             self.normal_scale,
             self.edge.clone(),
         )
+
+
+@dataclass(frozen=True)
+class Subdivision:
+    """``L`` levels of 1-to-4 midpoint subdivision of a triangle mesh, as a linear map of its vertices.
+
+    Every level adds one vertex at the midpoint of each edge and splits each triangle ``(a, b, c)`` into
+    ``(a, m_ab, m_ca)``, ``(m_ab, b, m_bc)``, ``(m_ca, m_bc, c)`` and ``(m_ab, m_bc, m_ca)`` (orientation kept). The
+    ``4^L`` children of face ``f`` are faces ``f·4^L … (f + 1)·4^L − 1`` of :attr:`faces`, so per-child values fold
+    back to their parent with ``.view(F, 4^L, ...)``. Calling it maps ``[V, 3]`` vertices, differentiably, to the
+    ``[V′, 3]`` vertices of the fine mesh (the first ``V`` are the coarse ones).
+
+    Attributes:
+        faces: ``[F·4^L, 3]`` int64 triangles of the fine mesh.
+        midpoints: per level, ``[E_l, 2]`` the vertex pairs whose midpoints that level appends.
+    """
+
+    faces: torch.Tensor
+    midpoints: tuple[torch.Tensor, ...]
+
+    @classmethod
+    def of(cls, faces: torch.Tensor, vertex_count: int, levels: int) -> Subdivision:
+        """Subdivide ``faces [F, 3]`` (indices into ``vertex_count`` vertices) ``levels`` times (0: unchanged)."""
+        faces = faces.long()
+        midpoints = []
+        count = vertex_count
+        for _ in range(levels):
+            f = faces.shape[0]
+            half = torch.stack([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]], 1)  # [F, 3, 2]
+            edges, slot = torch.unique(half.sort(dim=2).values.reshape(-1, 2), dim=0, return_inverse=True)
+            m = (slot + count).view(f, 3)  # midpoints of edges ab, bc, ca
+            a, b, c = faces.unbind(1)
+            mab, mbc, mca = m.unbind(1)
+            children = torch.stack(
+                [
+                    torch.stack([a, mab, mca], 1),
+                    torch.stack([mab, b, mbc], 1),
+                    torch.stack([mca, mbc, c], 1),
+                    torch.stack([mab, mbc, mca], 1),
+                ],
+                1,
+            )  # [F, 4, 3]: children stay next to their parent
+            faces = children.reshape(-1, 3)
+            midpoints.append(edges)
+            count += edges.shape[0]
+        return cls(faces, tuple(midpoints))
+
+    @property
+    def children(self) -> int:
+        """Fine faces per coarse face, ``4^L``."""
+        return 4 ** len(self.midpoints)
+
+    def __call__(self, vertices: torch.Tensor) -> torch.Tensor:
+        for edges in self.midpoints:
+            vertices = torch.cat([vertices, 0.5 * (vertices[edges[:, 0]] + vertices[edges[:, 1]])])
+        return vertices
+
+    def to(self, device: torch.device | str) -> Subdivision:
+        return Subdivision(self.faces.to(device), tuple(e.to(device) for e in self.midpoints))
 
 
 def longest_edges(triangles: torch.Tensor) -> torch.Tensor:

@@ -79,7 +79,11 @@ def test_mismatched_frame_counts_are_refused(experiment, tmp_path):
     assert "3 frames" in result.stderr and "has 6" in result.stderr
 
 
-def test_isometry_tolerance_out_of_range_is_refused(tmp_path):
-    result = _run("track", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--iso-tolerance", "1.5")
+@pytest.mark.parametrize(
+    ("flag", "value", "name"),
+    [("--iso-tolerance", "1.5", "iso_tolerance"), ("--face-subdivisions", "5", "face_subdivisions")],
+)
+def test_tracking_options_out_of_range_are_refused(tmp_path, flag, value, name):
+    result = _run("track", "--smoke", "--out", str(tmp_path), "--device", "cpu", flag, value)
     assert result.returncode == 2
-    assert "iso_tolerance" in result.stderr and "Traceback" not in result.stderr
+    assert name in result.stderr and "Traceback" not in result.stderr

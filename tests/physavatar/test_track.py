@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
-from physavatar.gaussians import GaussianAppearance, face_frames
+from physavatar.gaussians import GaussianAppearance, Subdivision, face_frames
 from physavatar.shapes import grid_sheet
 from physavatar.track import TrackConfig, _mesh_neighbours, isometry_loss, normal_loss, track
 
@@ -67,6 +67,35 @@ def test_gaussians_sit_on_the_faces_in_the_faces_frames():
     torch.testing.assert_close(turned, turn @ rotation)
 
 
+def test_subdivision_splits_every_face_in_place_and_shares_midpoints():
+    vertices, faces = _sheet()
+    bent = vertices.clone()
+    bent[:, 2] = 0.5 * bent[:, 0] ** 2  # curved, so the fine vertices must come from the coarse ones, not a grid
+    fine = Subdivision.of(faces, vertices.shape[0], 2)
+    x = fine(bent)
+    assert fine.children == 16 and fine.faces.shape == (16 * faces.shape[0], 3)
+    # a 9×9 grid subdivided twice is the 33×33 grid: shared edges got one midpoint each
+    assert x.shape == (33 * 33, 3) and int(fine.faces.max()) == 33 * 33 - 1
+    torch.testing.assert_close(x[: vertices.shape[0]], bent)
+
+    def normals(v, f):
+        t = v[f]
+        return torch.linalg.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+    # every child lies in its parent's plane, faces the same way, and the children tile the parent
+    parent = normals(bent, faces)
+    child = normals(x, fine.faces).view(-1, 16, 3)
+    assert bool(((child * parent[:, None]).sum(2) > 0).all())
+    torch.testing.assert_close(child.sum(1), parent)  # areas (×2) add up, as vectors
+    torch.testing.assert_close(x[fine.faces].mean(1).view(-1, 16, 3).mean(1), bent[faces].mean(1))
+    # the map is linear in the vertices, so gradients reach the coarse vertices
+    bent.requires_grad_(True)
+    fine(bent).sum().backward()
+    assert bool((bent.grad > 0).all())
+    with pytest.raises(ValueError, match="face_subdivisions"):
+        TrackConfig(face_subdivisions=4)
+
+
 @pytest.fixture(scope="module")
 def rigid_capture():
     vertices, faces = _sheet()
@@ -84,9 +113,10 @@ def rigid_capture():
     return frames, faces, film
 
 
-def test_tracking_recovers_a_rigidly_moving_sheet(device, rigid_capture):
+@pytest.mark.parametrize("subdivisions", [0, 1])
+def test_tracking_recovers_a_rigidly_moving_sheet(device, rigid_capture, subdivisions):
     frames, faces, film = rigid_capture
-    config = TrackConfig(first_iterations=60, iterations=60, lr_vertices=2e-3)
+    config = TrackConfig(first_iterations=60, iterations=60, lr_vertices=2e-3, face_subdivisions=subdivisions)
     seen = []
     result = track(film, frames[0], faces, None, None, config, truth=frames, progress=lambda *a: seen.append(a[0]))
     assert seen == [0, 1, 2, 3]
