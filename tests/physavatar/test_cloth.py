@@ -117,6 +117,46 @@ def test_sheet_dropped_on_sphere_never_penetrates(device):
     assert float(state.x[:, 1].min()) < 0.1  # the rim drapes down
 
 
+def test_candidates_found_once_serve_every_sweep_they_cover(device):
+    """A step searches for contact candidates once, along each vertex's predicted path plus a margin: for any sweep
+    inside that reach, filtering them gives exactly the pairs a fresh search of the sweep finds."""
+    solver, control, body, _ = _sheet_over_sphere(12)
+    state = solver.initial_state()
+    for _ in range(7):  # fall into contact
+        solver.step(state, state, control, 0.04)
+    lifted = body + torch.tensor([0.0, 4e-3, 0.0], dtype=F64, device=body.device)
+    rising = ClothControl(body, lifted, control.boundary_index, control.boundary_target)
+    X, target, ctx = solver._context(state, rising, 0.04)
+    cover = solver._cover(X, target, ctx, 5e-3)
+    generator = torch.Generator().manual_seed(0)
+
+    def rows(index: torch.Tensor) -> set:
+        return set(map(tuple, index.cpu().tolist()))
+
+    for scale in (1e-3, 4e-3, 3e-2):
+        p = (2.0 * torch.rand(X.shape, generator=generator, dtype=F64) - 1.0).to(X.device) * scale
+        p[solver.vertex_count :] = target[solver.vertex_count :] - X[solver.vertex_count :]
+        assert solver._covers(cover, X, p) == (scale < 5e-3)
+        if scale > 5e-3:
+            continue
+        fresh, reused = solver._broad_phase(X, p, ctx), solver._swept(X, p, cover)
+        assert fresh.pt.shape[0] > 0 and fresh.pt_body > 0  # the sheet lies on the sphere
+        assert rows(reused.pt) == rows(fresh.pt) and rows(reused.ee) == rows(fresh.ee)
+        assert (reused.pt_body, reused.ee_body) == (fresh.pt_body, fresh.ee_body)
+
+    # A step whose candidates must be searched again at every sweep (no margin) takes the same path.
+    paths, searches = [], []
+    for margin in (0.0, ClothConfig().candidate_margin):
+        solver, control, _, _ = _sheet_over_sphere(8, ClothConfig(candidate_margin=margin))
+        state, total = solver.initial_state(), 0
+        for _ in range(8):
+            total += solver.step(state, state, control, 0.04).candidate_searches
+        paths.append(state.x.cpu())
+        searches.append(total)
+    torch.testing.assert_close(paths[1], paths[0], rtol=0.0, atol=1e-9)
+    assert searches[1] < searches[0]
+
+
 def test_linear_solvers_take_the_same_steps(device):
     """Sparse direct, dense Cholesky and CG solve the same Newton systems: the sheet lands on the sphere alike."""
     finals = {}
