@@ -1051,32 +1051,34 @@ class SolverCloth:
         return energy, grad, elements
 
     def _assemble(self, elements, grad: torch.Tensor, p_kin: torch.Tensor, ctx: _StepContext):
-        """Free-free Hessian blocks (COO, 3×3) and the right-hand side ``−g_f − H_fk p_k``."""
-        dof = ctx.dof
+        """Hessian blocks (COO, 3×3) of the free DOFs and the right-hand side ``−g_f − H_fk p_k``.
+
+        Kinematic vertices take the index ``n`` (one past the free ones) instead of being masked out, so the
+        assembly reads nothing back from the device: blocks in row or column ``n`` are for the solver to drop
+        (:meth:`_solve`). ``p_kin`` is zero on the free vertices, so every block's push ``H_ij p_j`` is that of the
+        kinematic columns alone.
+        """
         n = ctx.free.numel()
-        rhs = -grad[ctx.free].clone()
+        slot = torch.where(ctx.dof >= 0, ctx.dof, n)
+        rhs = grad.new_zeros(n + 1, 3)
+        rhs[:n] = -grad[ctx.free]
         rows, cols, blocks = [], [], []
         for index, hess in elements:
             k = index.shape[1]
-            hb = hess.view(-1, k, 3, k, 3).permute(0, 1, 3, 2, 4)
-            ri = index[:, :, None].expand(-1, k, k)
-            ci = index[:, None, :].expand(-1, k, k)
-            fr, fc = dof[ri], dof[ci]
-            both = (fr >= 0) & (fc >= 0)
-            rows.append(fr[both])
-            cols.append(fc[both])
-            blocks.append(hb[both])
-            coupled = (fr >= 0) & (fc < 0)
-            if bool(coupled.any()):
-                push = torch.einsum("nij,nj->ni", hb[coupled], p_kin[ci[coupled]])
-                rhs.index_add_(0, fr[coupled], -push)
+            hb = hess.view(-1, k, 3, k, 3).permute(0, 1, 3, 2, 4).reshape(-1, 3, 3)
+            fr = slot[index[:, :, None].expand(-1, k, k)].reshape(-1)
+            ci = index[:, None, :].expand(-1, k, k).reshape(-1)
+            rows.append(fr)
+            cols.append(slot[ci])
+            blocks.append(hb)
+            rhs.index_add_(0, fr, -torch.einsum("nij,nj->ni", hb, p_kin[ci]))
         if not self.config.static:
             idx = torch.arange(n, device=grad.device)
             mass = self.mass[ctx.free]
             rows.append(idx)
             cols.append(idx)
             blocks.append(mass[:, None, None] * torch.eye(3, dtype=F64, device=grad.device))
-        return torch.cat(rows), torch.cat(cols), torch.cat(blocks), rhs.reshape(-1)
+        return torch.cat(rows), torch.cat(cols), torch.cat(blocks), rhs[:n].reshape(-1)
 
     def _solve(self, rows, cols, blocks, rhs, n: int) -> torch.Tensor:
         """Solve ``H p = rhs`` for the free DOFs (``H`` SPD as 3×3 COO blocks; ``rhs`` ``[3n]`` or ``[3n, P]``)."""
@@ -1084,6 +1086,10 @@ class SolverCloth:
             return rhs.new_zeros(rhs.shape)
         if rhs.dim() == 2 and self.linear_solver == "cg":
             return torch.stack([self._solve(rows, cols, blocks, rhs[:, j], n) for j in range(rhs.shape[1])], 1)
+        if self.linear_solver == "dense":  # kinematic blocks land in an extra row and column, sliced off
+            return _dense_solve(rows, cols, blocks, rhs, n)
+        keep = (rows < n) & (cols < n)
+        rows, cols, blocks = rows[keep], cols[keep], blocks[keep]
         i = torch.arange(3, device=rows.device)
         r = (3 * rows[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
         c = (3 * cols[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
@@ -1091,8 +1097,6 @@ class SolverCloth:
         if self.linear_solver == "direct":
             h = scipy.sparse.csc_matrix((vals.cpu().numpy(), (r.cpu().numpy(), c.cpu().numpy())), shape=(3 * n, 3 * n))
             return torch.from_numpy(_sparse_spd_solve(h, rhs.cpu().numpy())).to(rhs.device)
-        if self.linear_solver == "dense":
-            return _dense_solve(r, c, vals, rhs, 3 * n)
         return _block_jacobi_cg(
             r, c, vals, rows, cols, blocks, rhs, n, self.config.cg_tolerance, self.config.cg_max_iterations
         )
@@ -1195,11 +1199,17 @@ def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
     return scipy.sparse.linalg.splu(h, permc_spec="COLAMD").solve(rhs)
 
 
-def _dense_solve(r, c, vals, rhs, size: int) -> torch.Tensor:
-    """Solve ``H x = rhs`` with ``H`` given as COO triplets, densely on the device: Cholesky, or LU where ``H`` is
-    not positive definite (the exact Hessians of a sensitivity step may not be)."""
-    h = torch.zeros(size, size, dtype=vals.dtype, device=vals.device)
-    h.index_put_((r, c), vals, accumulate=True)
+def _dense_solve(rows, cols, blocks, rhs, n: int) -> torch.Tensor:
+    """Solve ``H x = rhs`` densely on the device: Cholesky, or LU where ``H`` is not positive definite (the exact
+    Hessians of a sensitivity step may not be). ``H`` is given as 3×3 COO blocks over ``n + 1`` block rows and
+    columns, of which the last (the kinematic vertices') is dropped."""
+    size = 3 * (n + 1)
+    i = torch.arange(3, device=rows.device)
+    r = (3 * rows[:, None, None] + i[None, :, None]).expand(-1, 3, 3).reshape(-1)
+    c = (3 * cols[:, None, None] + i[None, None, :]).expand(-1, 3, 3).reshape(-1)
+    h = torch.zeros(size, size, dtype=blocks.dtype, device=blocks.device)
+    h.index_put_((r, c), blocks.reshape(-1), accumulate=True)
+    h = h[: 3 * n, : 3 * n]
     factor, info = torch.linalg.cholesky_ex(h)
     column = rhs if rhs.dim() == 2 else rhs[:, None]
     x = torch.cholesky_solve(column, factor) if int(info) == 0 else torch.linalg.solve(h, column)
