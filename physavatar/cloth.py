@@ -127,7 +127,9 @@ class ClothConfig:
         candidate_margin: how far, m, the contact candidates of a step reach beyond each vertex's predicted path
             (start to inertial target, or to its target for kinematic vertices). The candidates are found once and
             serve every Newton iteration whose sweep stays within that reach; a sweep that leaves it finds them
-            anew. Larger margins mean fewer searches and more candidates to filter.
+            anew. Larger margins mean fewer searches and more candidates to filter. Measured on skirt7271 walking, 5
+            frames on an H100: 2 mm took 3–5 searches per step and 80 ms per frame in the broad phase, 5 mm 1–3
+            searches and 49 ms.
     """
 
     density: float = 472.641509
@@ -149,7 +151,7 @@ class ClothConfig:
     cg_tolerance: float = 1e-8
     cg_max_iterations: int = 5000
     ccd_eta: float = 0.1
-    candidate_margin: float = 2e-3
+    candidate_margin: float = 5e-3
 
     def __post_init__(self):
         lo, hi = DENSITY_RANGE
