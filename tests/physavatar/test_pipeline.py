@@ -81,7 +81,11 @@ def test_mismatched_frame_counts_are_refused(experiment, tmp_path):
 
 @pytest.mark.parametrize(
     ("flag", "value", "name"),
-    [("--iso-tolerance", "1.5", "iso_tolerance"), ("--face-subdivisions", "5", "face_subdivisions")],
+    [
+        ("--iso-tolerance", "1.5", "iso_tolerance"),
+        ("--face-subdivisions", "5", "face_subdivisions"),
+        ("--lambda-normal", "-1", "lambda_normal"),
+    ],
 )
 def test_tracking_options_out_of_range_are_refused(tmp_path, flag, value, name):
     result = _run("track", "--smoke", "--out", str(tmp_path), "--device", "cpu", flag, value)
