@@ -489,6 +489,21 @@ def _parallel(X: torch.Tensor, ee: torch.Tensor, sin2: float = 1e-8) -> torch.Te
     return cross < sin2 * (da * da).sum(1) * (db * db).sum(1)
 
 
+def _boxes_overlap(lo: torch.Tensor, hi: torch.Tensor, index: torch.Tensor, split: int, dhat: float) -> torch.Tensor:
+    """``[N]`` bool: pairs ``index [N, 4]`` whose two primitives' boxes (over vertex boxes ``[lo, hi]``; the first
+    ``split`` vertices form the first primitive, grown by ``dhat``) overlap."""
+    i = index.long()
+    a_lo, a_hi = lo[i[:, :split]].amin(1) - dhat, hi[i[:, :split]].amax(1) + dhat
+    b_lo, b_hi = lo[i[:, split:]].amin(1), hi[i[:, split:]].amax(1)
+    return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
+
+
+def _keep(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> _Pairs:
+    """The pairs selected by the masks, with the garment–body counts (one read back from the device)."""
+    counts = torch.stack([pt_keep[: pairs.pt_body].sum(), ee_keep[: pairs.ee_body].sum()]).tolist()
+    return _Pairs(pairs.pt[pt_keep].contiguous(), pairs.ee[ee_keep].contiguous(), counts[0], counts[1])
+
+
 def _within(lo: torch.Tensor, hi: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor) -> torch.Tensor:
     """``[N]`` bool: boxes ``[lo, hi]`` that overlap the box ``[box_lo, box_hi]``."""
     return ((lo <= box_hi) & (box_lo <= hi)).all(1)
@@ -886,19 +901,11 @@ class SolverCloth:
         dhat = self.config.contact_distance
         end = X + p
         lo, hi = torch.minimum(X, end), torch.maximum(X, end)
-
-        def keep(index: torch.Tensor, split: int) -> torch.Tensor:
-            i = index.long()
-            a_lo, a_hi = lo[i[:, :split]].amin(1) - dhat, hi[i[:, :split]].amax(1) + dhat
-            b_lo, b_hi = lo[i[:, split:]].amin(1), hi[i[:, split:]].amax(1)
-            return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
-
         pairs = cover.pairs
-        pt_keep = keep(pairs.pt, 1)
+        pt_keep = _boxes_overlap(lo, hi, pairs.pt, 1, dhat)
         ee = pairs.ee.long()
-        ee_keep = keep(pairs.ee, 2) & ~(_parallel(X, ee) & _parallel(end, ee))
-        counts = torch.stack([pt_keep[: pairs.pt_body].sum(), ee_keep[: pairs.ee_body].sum()]).tolist()
-        return _Pairs(pairs.pt[pt_keep].contiguous(), pairs.ee[ee_keep].contiguous(), counts[0], counts[1])
+        ee_keep = _boxes_overlap(lo, hi, pairs.ee, 2, dhat) & ~(_parallel(X, ee) & _parallel(end, ee))
+        return _keep(pairs, pt_keep, ee_keep)
 
     def _box_pairs(self, lo: torch.Tensor, hi: torch.Tensor, ctx: _StepContext) -> _Pairs:
         """Pairs whose primitives' boxes overlap, given each vertex's box ``[lo, hi]`` (the query side grown by
@@ -952,20 +959,7 @@ class SolverCloth:
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
         dhat = self.config.contact_distance
-
-        def keep(index: torch.Tensor, split: int) -> torch.Tensor:
-            q = X[index.long()]
-            a_lo, a_hi = q[:, :split].amin(1) - dhat, q[:, :split].amax(1) + dhat
-            b_lo, b_hi = q[:, split:].amin(1), q[:, split:].amax(1)
-            return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
-
-        pt_keep, ee_keep = keep(pairs.pt, 1), keep(pairs.ee, 2)
-        return _Pairs(
-            pairs.pt[pt_keep].contiguous(),
-            pairs.ee[ee_keep].contiguous(),
-            int(pt_keep[: pairs.pt_body].sum()),
-            int(ee_keep[: pairs.ee_body].sum()),
-        )
+        return _keep(pairs, _boxes_overlap(X, X, pairs.pt, 1, dhat), _boxes_overlap(X, X, pairs.ee, 2, dhat))
 
     def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> float:
         """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021)."""
