@@ -153,6 +153,10 @@ class Subdivision:
             count += edges.shape[0]
         return cls(faces, tuple(midpoints))
 
+    def vertex_count(self, coarse: int) -> int:
+        """Vertices of the fine mesh made from ``coarse`` vertices: the coarse ones, then the midpoints."""
+        return coarse + sum(int(edges.shape[0]) for edges in self.midpoints)
+
     @property
     def children(self) -> int:
         """Fine faces per coarse face, ``4^L``."""

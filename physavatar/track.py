@@ -238,8 +238,7 @@ def track(
     background = torch.ones(3, dtype=torch.float32, device=device)
     faces = faces.long().to(device)
     fine = Subdivision.of(faces, v, config.face_subdivisions)
-    fine_count = int(fine.faces.max()) + 1
-    all_faces = torch.cat([fine.faces, body_faces.long().to(device) + fine_count])
+    all_faces = torch.cat([fine.faces, body_faces.long().to(device) + fine.vertex_count(v)])
     edges, degree, face_pairs = _mesh_neighbours(faces, v)
     edges, degree, face_pairs = edges.to(device), degree.to(device), face_pairs.to(device)
     x1 = first_vertices.to(device, torch.float64)

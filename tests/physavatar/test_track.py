@@ -75,7 +75,7 @@ def test_subdivision_splits_every_face_in_place_and_shares_midpoints():
     x = fine(bent)
     assert fine.children == 16 and fine.faces.shape == (16 * faces.shape[0], 3)
     # a 9×9 grid subdivided twice is the 33×33 grid: shared edges got one midpoint each
-    assert x.shape == (33 * 33, 3) and int(fine.faces.max()) == 33 * 33 - 1
+    assert x.shape == (33 * 33, 3) and int(fine.faces.max()) == 33 * 33 - 1 == fine.vertex_count(81) - 1
     torch.testing.assert_close(x[: vertices.shape[0]], bent)
 
     def normals(v, f):
