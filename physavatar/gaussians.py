@@ -167,9 +167,6 @@ class Subdivision:
             vertices = torch.cat([vertices, 0.5 * (vertices[edges[:, 0]] + vertices[edges[:, 1]])])
         return vertices
 
-    def to(self, device: torch.device | str) -> Subdivision:
-        return Subdivision(self.faces.to(device), tuple(e.to(device) for e in self.midpoints))
-
 
 def longest_edges(triangles: torch.Tensor) -> torch.Tensor:
     """Index ``k`` of the longest edge ``(v_k, v_{k+1 mod 3})`` of each triangle ``[F, 3, 3]`` → ``[F]`` int64."""
