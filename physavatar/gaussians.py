@@ -5,6 +5,8 @@ x-axis along the face's longest edge *at the first frame* (the same edge in ever
 with the cloth), the z-axis along the face normal, ``y = z × x``. Its scales are ``(s_x, s_y, s_n)``: two in-plane
 scales learnt on the first frame and a small constant normal scale ``s_n`` that keeps the Gaussian on the surface.
 Position and rotation therefore follow the vertices, which is how optimising the images moves the mesh.
+For a mesh whose faces span many pixels, :class:`Subdivision` puts ``4^L`` Gaussians on each face: one per
+triangle of the face's midpoint subdivision, whose vertices are fixed combinations of the face's own.
 
 Rendering is the 3D Gaussian Splatting pipeline (Kerbl et al. 2023): the covariance ``Σ = R S² Rᵀ`` is projected
 to the image with the Jacobian of the pinhole projection at the mean (EWA splatting, Zwicker et al. 2002),
