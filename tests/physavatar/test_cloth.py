@@ -146,7 +146,7 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
 
     # A step whose candidates must be searched again at every sweep (no margin) takes the same path.
     paths, searches = [], []
-    for margin in (0.0, ClothConfig().candidate_margin):
+    for margin in (0.0, 5e-3):
         solver, control, _, _ = _sheet_over_sphere(8, ClothConfig(candidate_margin=margin))
         state, total = solver.initial_state(), 0
         for _ in range(8):
@@ -195,6 +195,7 @@ def test_bad_input_raises_clear_errors(device):
         ("kappa_b", 0.05, "kappa_b"),
         ("thickness", -1e-3, "thickness"),
         ("poisson", 0.5, "poisson"),
+        ("candidate_margin", -1e-3, "candidate_margin"),
     ):
         with pytest.raises(ValueError, match=words):
             ClothConfig(**{field: value})
