@@ -4,7 +4,7 @@
 import pytest
 import torch
 
-from kernels import backend
+from kernels import backend, cudss
 from physavatar.cloth import ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
 from physavatar.shapes import grid_sheet, icosphere
 
@@ -158,9 +158,11 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
 
 
 def test_linear_solvers_take_the_same_steps(device):
-    """Sparse direct, dense Cholesky and CG solve the same Newton systems: the sheet lands on the sphere alike."""
+    """Sparse direct (SuperLU, and cuDSS where present), dense Cholesky and CG solve the same Newton systems: the
+    sheet lands on the sphere alike."""
     finals = {}
-    for solver_name in ("direct", "dense", "cg"):
+    names = ("direct", "dense", "cg") + (("cudss",) if device == "cuda" and cudss.available() else ())
+    for solver_name in names:
         solver, control, _, _ = _sheet_over_sphere(8, ClothConfig(linear_solver=solver_name, cg_tolerance=1e-12))
         assert solver.linear_solver == solver_name
         state = solver.initial_state()
@@ -170,6 +172,8 @@ def test_linear_solvers_take_the_same_steps(device):
         finals[solver_name] = state.x.cpu()
     torch.testing.assert_close(finals["dense"], finals["direct"], rtol=0.0, atol=1e-7)
     torch.testing.assert_close(finals["cg"], finals["direct"], rtol=0.0, atol=1e-6)
+    if "cudss" in finals:
+        torch.testing.assert_close(finals["cudss"], finals["direct"], rtol=0.0, atol=1e-7)
 
 
 def test_cpu_steps_are_bitwise_reproducible(device):

@@ -1,0 +1,349 @@
+"""Sparse symmetric positive definite solves on CUDA through NVIDIA cuDSS, bound with ``ctypes``.
+
+cuDSS is optional: ``pip install nvidia-cudss-cu13`` (or ``-cu12``, matching torch's CUDA) makes
+:func:`available` true. The library is found, in order, at the path in ``$CUDSS_LIBRARY``, in the
+``nvidia`` wheels on ``sys.path``, or on the loader's search path. Versions 0.8 and later are supported
+(0.8 gave the CSR constructor its offset type and the phases their present bit flags).
+
+:class:`SparseSPDSolver` keeps one factorisation on the device. :meth:`~SparseSPDSolver.factor` runs cuDSS's
+analysis (fill-reducing reordering on the host, symbolic factorisation) only when the sparsity pattern differs
+from the last matrix's, then the numeric factorisation; :meth:`~SparseSPDSolver.solve` solves with it. Every
+call runs on torch's current stream. :func:`blocks_to_csr` turns 3×3 COO blocks (duplicates summed) into the
+scalar CSR arrays it takes.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import glob
+import os
+import sys
+
+import torch
+
+__all__ = ["CudssError", "SparseSPDSolver", "available", "blocks_to_csr", "version"]
+
+# enumerators of cudss.h / library_types.h (stable from cuDSS 0.8 on)
+_SUCCESS = 0
+_STATUS = (
+    "SUCCESS",
+    "NOT_INITIALIZED",
+    "ALLOC_FAILED",
+    "INVALID_VALUE",
+    "NOT_SUPPORTED",
+    "EXECUTION_FAILED",
+    "INTERNAL_ERROR",
+    "IR_FAILED",
+)
+_PHASE_ANALYSIS = 0b11  # reordering | symbolic factorisation
+_PHASE_FACTORIZATION = 1 << 2
+_PHASE_SOLVE = 0b1111110000  # forward permutation … refinement
+_CUDA_R_64F = 1
+_CUDA_R_32I = 10
+_MTYPE_SPD = 3
+_MVIEW_FULL = 0
+_BASE_ZERO = 0
+_LAYOUT_COL_MAJOR = 0
+_DATA_INFO = 0
+_MINIMUM_VERSION = (0, 8)
+
+_library: ctypes.CDLL | None = None
+_load_error: str | None = None
+
+
+class CudssError(RuntimeError):
+    """A cuDSS call failed, or the library cannot be used."""
+
+
+def _candidates() -> list[str]:
+    found = []
+    if os.environ.get("CUDSS_LIBRARY"):
+        found.append(os.environ["CUDSS_LIBRARY"])
+    for root in sys.path:
+        for sub in ("nvidia/cu13/lib", "nvidia/cu12/lib", "nvidia/cudss/lib"):
+            found += sorted(glob.glob(os.path.join(root or ".", sub, "libcudss.so*")), reverse=True)
+    name = ctypes.util.find_library("cudss")
+    if name:
+        found.append(name)
+    return found
+
+
+def _preload_dependencies(path: str) -> None:
+    """Load the cuBLAS and NVRTC that ``path`` needs globally, from the ``nvidia`` wheels beside it or on
+    ``sys.path`` (torch's own, when it was installed from wheels), so that the loader finds them.
+
+    Loading a library twice is harmless: the loader keeps one copy per name."""
+    lib = os.path.dirname(os.path.abspath(path))
+    folders = [lib]
+    for root in sys.path:
+        folders += sorted(glob.glob(os.path.join(root or ".", "nvidia", "*", "lib")))
+    for pattern in ("libcublasLt.so.*", "libcublas.so.*", "libnvrtc.so.*"):
+        for folder in folders:
+            for dependency in sorted(glob.glob(os.path.join(folder, pattern))):
+                try:
+                    ctypes.CDLL(dependency, mode=ctypes.RTLD_GLOBAL)
+                except OSError:
+                    pass
+
+
+def _load() -> ctypes.CDLL:
+    global _library, _load_error
+    if _library is not None:
+        return _library
+    if _load_error is not None:
+        raise CudssError(_load_error)
+    errors = []
+    for path in _candidates():
+        try:
+            library = ctypes.CDLL(path)
+        except OSError:
+            _preload_dependencies(path)
+            try:
+                library = ctypes.CDLL(path)
+            except OSError as error:
+                errors.append(f"{path}: {error}")
+                continue
+        _declare(library)
+        found = _version_of(library)
+        if found[:2] < _MINIMUM_VERSION:
+            errors.append(f"{path}: version {'.'.join(map(str, found))} is older than 0.8")
+            continue
+        _library = library
+        return library
+    _load_error = (
+        "cuDSS is not available ("
+        + ("; ".join(errors) if errors else "no libcudss found")
+        + "): pip install nvidia-cudss-cu13 (or nvidia-cudss-cu12 for a CUDA 12 torch), or set CUDSS_LIBRARY to "
+        "the path of libcudss.so"
+    )
+    raise CudssError(_load_error)
+
+
+def _declare(library: ctypes.CDLL) -> None:
+    p, i64, c_int = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    signatures = {
+        "cudssCreate": [ctypes.POINTER(p)],
+        "cudssDestroy": [p],
+        "cudssSetStream": [p, p],
+        "cudssConfigCreate": [ctypes.POINTER(p)],
+        "cudssConfigDestroy": [p],
+        "cudssDataCreate": [p, ctypes.POINTER(p)],
+        "cudssDataDestroy": [p, p],
+        "cudssDataGet": [p, p, c_int, p, ctypes.c_size_t, ctypes.POINTER(ctypes.c_size_t)],
+        "cudssMatrixCreateCsr": [ctypes.POINTER(p), i64, i64, i64, p, p, p, p, *[c_int] * 6],
+        "cudssMatrixCreateDn": [ctypes.POINTER(p), i64, i64, i64, p, c_int, c_int],
+        "cudssMatrixSetValues": [p, p],
+        "cudssMatrixDestroy": [p],
+        "cudssExecute": [p, c_int, p, p, p, p, p],
+        "cudssGetProperty": [c_int, ctypes.POINTER(c_int)],
+    }
+    for name, argtypes in signatures.items():
+        function = getattr(library, name)
+        function.argtypes = argtypes
+        function.restype = c_int
+
+
+def _version_of(library: ctypes.CDLL) -> tuple[int, int, int]:
+    parts = []
+    for prop in range(3):  # MAJOR_VERSION, MINOR_VERSION, PATCH_LEVEL
+        value = ctypes.c_int()
+        library.cudssGetProperty(prop, ctypes.byref(value))
+        parts.append(value.value)
+    return tuple(parts)
+
+
+def available() -> bool:
+    """Whether cuDSS (0.8 or later) loads and torch sees a CUDA device."""
+    if not torch.cuda.is_available():
+        return False
+    try:
+        _load()
+    except CudssError:
+        return False
+    return True
+
+
+def version() -> tuple[int, int, int]:
+    """cuDSS's ``(major, minor, patch)``; raises :class:`CudssError` when it cannot be loaded."""
+    return _version_of(_load())
+
+
+def _check(status: int, call: str) -> None:
+    if status != _SUCCESS:
+        name = _STATUS[status] if 0 <= status < len(_STATUS) else str(status)
+        raise CudssError(f"{call} failed with CUDSS_STATUS_{name}")
+
+
+class SparseSPDSolver:
+    """Cholesky factorisation of a sparse SPD matrix on a CUDA device, reused across right-hand sides.
+
+    Args:
+        device: the CUDA device the matrices and right-hand sides live on.
+
+    Attributes:
+        analyses: how many times the pattern was analysed (reordered and factored symbolically).
+        factorizations: how many numeric factorisations ran.
+    """
+
+    def __init__(self, device: torch.device | str = "cuda"):
+        self.device = torch.device(device)
+        if self.device.type != "cuda":
+            raise ValueError(f"cuDSS solves on a CUDA device, got {self.device}")
+        self._lib = _load()
+        self._handle, self._config, self._data = ctypes.c_void_p(), ctypes.c_void_p(), ctypes.c_void_p()
+        with torch.cuda.device(self.device):
+            _check(self._lib.cudssCreate(ctypes.byref(self._handle)), "cudssCreate")
+            _check(self._lib.cudssConfigCreate(ctypes.byref(self._config)), "cudssConfigCreate")
+            _check(self._lib.cudssDataCreate(self._handle, ctypes.byref(self._data)), "cudssDataCreate")
+        self._matrix = ctypes.c_void_p()
+        self._pattern: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._values: torch.Tensor | None = None
+        self._size = 0
+        self.analyses = 0
+        self.factorizations = 0
+
+    def factor(self, crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor) -> bool:
+        """Factor the matrix given as CSR arrays (every stored entry of both triangles, float64).
+
+        Returns whether it is positive definite (a ``False`` leaves no usable factor).
+        """
+        size = crow.numel() - 1
+        crow = crow.to(self.device, torch.int32).contiguous()
+        col = col.to(self.device, torch.int32).contiguous()
+        values = values.to(self.device, torch.float64).contiguous()
+        if col.numel() != values.numel() or col.numel() != int(crow[-1]):
+            raise ValueError(
+                f"CSR arrays disagree: {col.numel()} column indices, {values.numel()} values, last offset "
+                f"{int(crow[-1])}"
+            )
+        lib = self._lib
+        with torch.cuda.device(self.device):
+            self._set_stream()
+            same = (
+                self._pattern is not None
+                and self._pattern[1].numel() == col.numel()
+                and self._pattern[0].numel() == crow.numel()
+                and bool(torch.equal(self._pattern[0], crow) and torch.equal(self._pattern[1], col))
+            )
+            if same:
+                _check(lib.cudssMatrixSetValues(self._matrix, values.data_ptr()), "cudssMatrixSetValues")
+            else:
+                self._destroy_matrix()
+                _check(
+                    lib.cudssMatrixCreateCsr(
+                        ctypes.byref(self._matrix), size, size, col.numel(), crow.data_ptr(), None, col.data_ptr(),
+                        values.data_ptr(), _CUDA_R_32I, _CUDA_R_32I, _CUDA_R_64F, _MTYPE_SPD, _MVIEW_FULL,
+                        _BASE_ZERO,
+                    ),
+                    "cudssMatrixCreateCsr",
+                )
+                self._pattern, self._size = (crow, col), size
+                self._execute(_PHASE_ANALYSIS, None, None, "analysis")
+                self.analyses += 1
+            self._values = values  # cuDSS reads the values through this pointer
+            self._execute(_PHASE_FACTORIZATION, None, None, "factorization")
+            self.factorizations += 1
+            info = ctypes.c_int()
+            written = ctypes.c_size_t()
+            _check(
+                lib.cudssDataGet(self._handle, self._data, _DATA_INFO, ctypes.byref(info), 4, ctypes.byref(written)),
+                "cudssDataGet(INFO)",
+            )
+        return info.value == 0
+
+    def solve(self, rhs: torch.Tensor) -> torch.Tensor:
+        """Solve with the last factor: ``rhs`` is ``[n]`` or ``[n, k]`` float64 on the device."""
+        if self._pattern is None:
+            raise CudssError("solve before factor: factor a matrix first")
+        if rhs.shape[0] != self._size:
+            raise ValueError(f"right-hand side has {rhs.shape[0]} rows, the factored matrix {self._size}")
+        columns = 1 if rhs.dim() == 1 else rhs.shape[1]
+        b = rhs.to(self.device, torch.float64).reshape(self._size, columns).t().contiguous()  # column-major
+        x = torch.empty_like(b)
+        lib = self._lib
+        mb, mx = ctypes.c_void_p(), ctypes.c_void_p()
+        with torch.cuda.device(self.device):
+            self._set_stream()
+            for matrix, array in ((mb, b), (mx, x)):
+                _check(
+                    lib.cudssMatrixCreateDn(
+                        ctypes.byref(matrix), self._size, columns, self._size, array.data_ptr(), _CUDA_R_64F,
+                        _LAYOUT_COL_MAJOR,
+                    ),
+                    "cudssMatrixCreateDn",
+                )
+            try:
+                self._execute(_PHASE_SOLVE, mx, mb, "solve")
+            finally:
+                lib.cudssMatrixDestroy(mb)
+                lib.cudssMatrixDestroy(mx)
+        x = x.t()
+        return x[:, 0] if rhs.dim() == 1 else x
+
+    def _set_stream(self) -> None:
+        stream = torch.cuda.current_stream(self.device).cuda_stream
+        _check(self._lib.cudssSetStream(self._handle, ctypes.c_void_p(stream)), "cudssSetStream")
+
+    def _execute(self, phase: int, solution, rhs, name: str) -> None:
+        _check(
+            self._lib.cudssExecute(self._handle, phase, self._config, self._data, self._matrix, solution, rhs),
+            f"cudssExecute({name})",
+        )
+
+    def _destroy_matrix(self) -> None:
+        if self._matrix.value:
+            self._lib.cudssMatrixDestroy(self._matrix)
+            self._matrix = ctypes.c_void_p()
+
+    def close(self) -> None:
+        """Free the factor and the library handle (also done when the solver is collected)."""
+        if getattr(self, "_handle", None) is None or not self._handle.value:
+            return
+        self._destroy_matrix()
+        self._lib.cudssDataDestroy(self._handle, self._data)
+        self._lib.cudssConfigDestroy(self._config)
+        self._lib.cudssDestroy(self._handle)
+        self._handle = ctypes.c_void_p()
+
+    def __del__(self):
+        try:
+            self.close()
+        except Exception:  # interpreter shutdown: the library may be gone already
+            pass
+
+
+def blocks_to_csr(
+    rows: torch.Tensor, cols: torch.Tensor, blocks: torch.Tensor, n: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Scalar CSR arrays ``(crow [3n + 1], col, values)`` of the ``3n × 3n`` matrix given as 3×3 COO blocks.
+
+    Blocks at the same ``(row, col)`` are summed; columns are sorted within each row. Pure torch, on the blocks'
+    device (one host read: the number of distinct blocks).
+    """
+    device = blocks.device
+    key = rows.to(torch.int64) * n + cols.to(torch.int64)
+    unique, inverse = torch.unique(key, sorted=True, return_inverse=True)
+    summed = blocks.new_zeros(unique.numel(), 3, 3).index_add_(0, inverse, blocks)
+    block_row, block_col = unique // n, unique % n
+    count = torch.bincount(block_row, minlength=n)
+    start = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    start[1:] = torch.cumsum(count, 0)
+    # scalar row 3i + a holds, for each block k of block row i in order, the columns 3 col_k + b (b = 0, 1, 2)
+    a = torch.arange(3, device=device)
+    crow = torch.zeros(3 * n + 1, dtype=torch.int64, device=device)
+    crow[:-1] = (9 * start[:-1, None] + 3 * a[None, :] * count[:, None]).reshape(-1)
+    crow[-1] = 9 * start[-1]
+    k = torch.arange(unique.numel(), device=device)
+    within = k - start[block_row]
+    position = (
+        9 * start[block_row][:, None, None]
+        + 3 * a[None, :, None] * count[block_row][:, None, None]
+        + 3 * within[:, None, None]
+        + a[None, None, :]
+    )
+    col = torch.empty(9 * unique.numel(), dtype=torch.int64, device=device)
+    values = torch.empty(9 * unique.numel(), dtype=blocks.dtype, device=device)
+    col[position.reshape(-1)] = (3 * block_col[:, None, None] + a[None, None, :]).expand(-1, 3, 3).reshape(-1)
+    values[position.reshape(-1)] = summed.reshape(-1)
+    return crow, col, values
