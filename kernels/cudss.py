@@ -9,7 +9,8 @@ cuDSS is optional: ``pip install nvidia-cudss-cu13`` (or ``-cu12``, matching tor
 analysis (fill-reducing reordering on the host, symbolic factorisation) only when the sparsity pattern differs
 from the last matrix's, then the numeric factorisation; :meth:`~SparseSPDSolver.solve` solves with it. Every
 call runs on torch's current stream. :func:`blocks_to_csr` turns 3×3 COO blocks (duplicates summed) into the
-scalar CSR arrays it takes.
+scalar CSR arrays it takes; :func:`block_pattern_csr` gives the CSR structure of a block pattern, for callers
+that assemble many matrices on one pattern.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 
 import torch
 
-__all__ = ["CudssError", "SparseSPDSolver", "available", "blocks_to_csr", "version"]
+__all__ = ["CudssError", "SparseSPDSolver", "available", "block_pattern_csr", "blocks_to_csr", "version"]
 
 # enumerators of cudss.h / library_types.h (stable from cuDSS 0.8 on)
 _SUCCESS = 0
@@ -206,30 +207,37 @@ class SparseSPDSolver:
     def factor(self, crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor) -> bool:
         """Factor the matrix given as CSR arrays (every stored entry of both triangles, float64).
 
+        The analysis is kept while the pattern stays the same. Passing the very ``crow`` and ``col`` tensors (int32,
+        on the device) of the last call says so without comparing them, which saves two reads from the device.
+
         Returns whether it is positive definite (a ``False`` leaves no usable factor).
         """
-        size = crow.numel() - 1
         crow = crow.to(self.device, torch.int32).contiguous()
         col = col.to(self.device, torch.int32).contiguous()
         values = values.to(self.device, torch.float64).contiguous()
-        if col.numel() != values.numel() or col.numel() != int(crow[-1]):
-            raise ValueError(
-                f"CSR arrays disagree: {col.numel()} column indices, {values.numel()} values, last offset "
-                f"{int(crow[-1])}"
+        last = self._pattern
+        same = last is not None and last[0] is crow and last[1] is col
+        if not same:
+            if col.numel() != values.numel() or col.numel() != int(crow[-1]):
+                raise ValueError(
+                    f"CSR arrays disagree: {col.numel()} column indices, {values.numel()} values, last offset "
+                    f"{int(crow[-1])}"
+                )
+            same = (
+                last is not None
+                and (last[0].numel(), last[1].numel()) == (crow.numel(), col.numel())
+                and bool(torch.equal(last[0], crow) and torch.equal(last[1], col))
             )
+        elif values.numel() != col.numel():
+            raise ValueError(f"{values.numel()} values for a pattern of {col.numel()} entries")
         lib = self._lib
         with torch.cuda.device(self.device):
             self._set_stream()
-            same = (
-                self._pattern is not None
-                and self._pattern[1].numel() == col.numel()
-                and self._pattern[0].numel() == crow.numel()
-                and bool(torch.equal(self._pattern[0], crow) and torch.equal(self._pattern[1], col))
-            )
             if same:
                 _check(lib.cudssMatrixSetValues(self._matrix, values.data_ptr()), "cudssMatrixSetValues")
             else:
                 self._destroy_matrix()
+                size = crow.numel() - 1
                 _check(
                     lib.cudssMatrixCreateCsr(
                         ctypes.byref(self._matrix), size, size, col.numel(), crow.data_ptr(), None, col.data_ptr(),
@@ -313,6 +321,37 @@ class SparseSPDSolver:
             pass
 
 
+def block_pattern_csr(
+    block_rows: torch.Tensor, block_cols: torch.Tensor, n: int
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Scalar CSR structure of a ``3n × 3n`` matrix made of 3×3 blocks at distinct ``(block_rows, block_cols)``,
+    sorted by row, then column.
+
+    Returns ``(crow [3n + 1], col [9K], position [K, 3, 3])``: the values array of block ``k``'s entry ``(a, b)``
+    is at ``position[k, a, b]`` (``values[position] = blocks``).
+    """
+    device = block_rows.device
+    block_rows, block_cols = block_rows.to(torch.int64), block_cols.to(torch.int64)
+    count = torch.bincount(block_rows, minlength=n)
+    start = torch.zeros(n + 1, dtype=torch.int64, device=device)
+    start[1:] = torch.cumsum(count, 0)
+    # scalar row 3i + a holds, for each block k of block row i in order, the columns 3 col_k + b (b = 0, 1, 2)
+    a = torch.arange(3, device=device)
+    crow = torch.empty(3 * n + 1, dtype=torch.int64, device=device)
+    crow[:-1] = (9 * start[:-1, None] + 3 * a[None, :] * count[:, None]).reshape(-1)
+    crow[-1:] = 9 * start[-1:]
+    within = torch.arange(block_rows.numel(), device=device) - start[block_rows]
+    position = (
+        9 * start[block_rows][:, None, None]
+        + 3 * a[None, :, None] * count[block_rows][:, None, None]
+        + 3 * within[:, None, None]
+        + a[None, None, :]
+    )
+    col = torch.empty(9 * block_rows.numel(), dtype=torch.int64, device=device)
+    col[position.reshape(-1)] = (3 * block_cols[:, None, None] + a[None, None, :]).expand(-1, 3, 3).reshape(-1)
+    return crow, col, position
+
+
 def blocks_to_csr(
     rows: torch.Tensor, cols: torch.Tensor, blocks: torch.Tensor, n: int
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -321,29 +360,10 @@ def blocks_to_csr(
     Blocks at the same ``(row, col)`` are summed; columns are sorted within each row. Pure torch, on the blocks'
     device (one host read: the number of distinct blocks).
     """
-    device = blocks.device
     key = rows.to(torch.int64) * n + cols.to(torch.int64)
     unique, inverse = torch.unique(key, sorted=True, return_inverse=True)
     summed = blocks.new_zeros(unique.numel(), 3, 3).index_add_(0, inverse, blocks)
-    block_row, block_col = unique // n, unique % n
-    count = torch.bincount(block_row, minlength=n)
-    start = torch.zeros(n + 1, dtype=torch.int64, device=device)
-    start[1:] = torch.cumsum(count, 0)
-    # scalar row 3i + a holds, for each block k of block row i in order, the columns 3 col_k + b (b = 0, 1, 2)
-    a = torch.arange(3, device=device)
-    crow = torch.zeros(3 * n + 1, dtype=torch.int64, device=device)
-    crow[:-1] = (9 * start[:-1, None] + 3 * a[None, :] * count[:, None]).reshape(-1)
-    crow[-1] = 9 * start[-1]
-    k = torch.arange(unique.numel(), device=device)
-    within = k - start[block_row]
-    position = (
-        9 * start[block_row][:, None, None]
-        + 3 * a[None, :, None] * count[block_row][:, None, None]
-        + 3 * within[:, None, None]
-        + a[None, None, :]
-    )
-    col = torch.empty(9 * unique.numel(), dtype=torch.int64, device=device)
-    values = torch.empty(9 * unique.numel(), dtype=blocks.dtype, device=device)
-    col[position.reshape(-1)] = (3 * block_col[:, None, None] + a[None, None, :]).expand(-1, 3, 3).reshape(-1)
+    crow, col, position = block_pattern_csr(unique // n, unique % n, n)
+    values = torch.empty(col.numel(), dtype=blocks.dtype, device=blocks.device)
     values[position.reshape(-1)] = summed.reshape(-1)
     return crow, col, values

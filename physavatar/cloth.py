@@ -38,12 +38,13 @@ resolves about 1e-7 m, the barrier's curvature near contact spans ten orders of 
 
 Linear solver: a direct sparse LU on the CPU (SciPy's SuperLU on the host; the matrices are SPD, so a symmetric
 ordering with diagonal pivots); on CUDA cuDSS's sparse Cholesky where it is installed (:mod:`kernels.cudss`; the
-pattern is reordered once and refactored every Newton iteration), else a dense Cholesky (cuSOLVER) up to
+pattern is analysed once and refactored every Newton iteration), else a dense Cholesky (cuSOLVER) up to
 :data:`DENSE_MAX_DOFS` and conjugate gradients with a 3×3 block-Jacobi preconditioner beyond. On skirt7271's 11k-DOF
-Newton matrix on an H100: 4.7 ms with cuDSS (1 ms to CSR, 2.2 ms factorisation, 0.5 ms solve), 24 ms dense, 418 ms
-CG. ``ClothConfig.linear_solver`` overrides. Every Newton system is factored anew: the previous system's Cholesky factor
-as a CG preconditioner reached a relative residual of 1e-8 within 6 iterations for only 2 of 75 systems of the
-1252-face skirt walking (contacts and the filtered element Hessians change too much between iterations).
+Newton matrix on an H100: about 3 ms with cuDSS (2.2 ms of it the factorisation, 0.5 ms the solve), 24 ms dense,
+418 ms CG. ``ClothConfig.linear_solver`` overrides. Every Newton system is factored anew: the previous system's
+Cholesky factor as a CG preconditioner reached a relative residual of 1e-8 within 6 iterations for only 2 of 75
+systems of the 1252-face skirt walking (contacts and the filtered element Hessians change too much between
+iterations).
 """
 
 from __future__ import annotations
@@ -590,7 +591,7 @@ class SolverCloth:
                 solver = "cudss"
             else:
                 solver = "dense" if 3 * v <= DENSE_MAX_DOFS else "cg"
-        self._cudss = cudss.SparseSPDSolver(device) if solver == "cudss" else None  # raises where it cannot load
+        self._cudss = _GrowingPattern(device) if solver == "cudss" else None  # raises where cuDSS cannot load
         self.linear_solver = solver
         margin = config.candidate_margin
         self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)
@@ -646,6 +647,8 @@ class SolverCloth:
         cfg = self.config
         timing = dict.fromkeys(PHASES, 0.0)
         X, target, ctx = self._context(state_in, control, dt)
+        if self._cudss is not None:
+            self._cudss.reset()
         v, kinematic, free = self.vertex_count, ctx.kinematic, ctx.free
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
         clock = _clock(X.device)
@@ -788,6 +791,8 @@ class SolverCloth:
             )
         count = len(parameters)
         X_start, X, ctx = self._context(state_in, control, dt)  # X: the targets, body at the end of the step
+        if self._cudss is not None:
+            self._cudss.reset()
         device = X.device
         for name, t in (("s_x", s_x), ("s_v", s_v)):
             if tuple(t.shape) != (v, 3, count):
@@ -1052,6 +1057,8 @@ class SolverCloth:
             eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
             pt, ee = e.contact(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa, project=False)
             for index, terms in ((near.pt, pt), (near.ee, ee)):
+                # only the active pairs (within d̂) enter: the others would add zero blocks joining garment vertices
+                # that no element joins, and so change the sparsity pattern (and cuDSS's analysis) every iteration
                 active = terms.energy > 0.0
                 if bool(active.any()):
                     hess = cloth.project_psd(terms.hess[active]) if project else terms.hess[active]
@@ -1103,7 +1110,7 @@ class SolverCloth:
         if self.linear_solver == "dense":  # kinematic blocks land in an extra row and column, sliced off
             return _dense_solve(rows, cols, blocks, rhs, n)
         if self.linear_solver == "cudss":
-            x = _cudss_solve(self._cudss, rows, cols, blocks, rhs, n)
+            x = self._cudss.solve(rows, cols, blocks, rhs, n)
             return x if x is not None else _dense_solve(rows, cols, blocks, rhs, n)
         keep = (rows < n) & (cols < n)
         rows, cols, blocks = rows[keep], cols[keep], blocks[keep]
@@ -1216,24 +1223,59 @@ def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
     return scipy.sparse.linalg.splu(h, permc_spec="COLAMD").solve(rhs)
 
 
-def _cudss_solve(solver: cudss.SparseSPDSolver, rows, cols, blocks, rhs, n: int) -> torch.Tensor | None:
-    """Solve ``H x = rhs`` by cuDSS's sparse Cholesky; ``None`` where ``H`` is not positive definite.
+class _GrowingPattern:
+    """cuDSS's sparse Cholesky of a step's Newton matrices, on a sparsity pattern that only grows within the step.
 
-    The blocks of the kinematic index ``n`` are all moved onto the diagonal block ``(n, n)`` and replaced there by
-    the identity, so the matrix keeps the free vertices' pattern (no host read to drop them) and its last three
-    unknowns are zero. cuDSS reorders and analyses the pattern only when it changes: the elastic blocks are fixed,
-    new contacts add entries.
+    cuDSS reorders and analyses a pattern anew whenever it changes (60 ms for skirt7271 on an H100, against 2.2 ms
+    for a numeric factorisation). The elastic blocks are the same every iteration and body contacts add none of
+    their own (their garment vertices share elastic blocks), but self-contacts come and go. So each matrix is
+    stored on the union of the patterns seen since :meth:`reset` (the start of a step), with explicit zeros where
+    a block is absent: the pattern is analysed again only when a contact joins two vertices for the first time in
+    the step.
+
+    The blocks of the kinematic index ``n`` all move onto the diagonal block ``(n, n)``, which becomes the
+    identity: the matrix keeps the free vertices' pattern (no host read to drop them) and its last three unknowns
+    are zero.
     """
-    inside = (rows < n) & (cols < n)
-    rows = torch.cat([torch.where(inside, rows, n), rows.new_full((1,), n)])
-    cols = torch.cat([torch.where(inside, cols, n), cols.new_full((1,), n)])
-    eye = torch.eye(3, dtype=blocks.dtype, device=blocks.device)
-    blocks = torch.cat([blocks * inside[:, None, None], eye[None]])
-    if not solver.factor(*cudss.blocks_to_csr(rows, cols, blocks, n + 1)):
-        return None
-    column = rhs if rhs.dim() == 2 else rhs[:, None]
-    x = solver.solve(torch.cat([column, column.new_zeros(3, column.shape[1])]))[: 3 * n]
-    return x if rhs.dim() == 2 else x[:, 0]
+
+    def __init__(self, device: torch.device):
+        self.solver = cudss.SparseSPDSolver(device)
+        self.keys: torch.Tensor | None = None  # sorted row * (n + 1) + col of every block of the pattern
+        self.size = 0
+
+    def reset(self) -> None:
+        self.keys = None
+
+    def _grow(self, key: torch.Tensor, n: int) -> None:
+        size = n + 1
+        known = [key, key.new_full((1,), n * size + n)]  # the kinematic identity block
+        if self.keys is not None and self.size == size:
+            known.append(self.keys)
+        self.keys, self.size = torch.unique(torch.cat(known)), size
+        crow, col, position = cudss.block_pattern_csr(self.keys // size, self.keys % size, size)
+        self.crow, self.col = crow.to(torch.int32), col.to(torch.int32)
+        self.position = position.reshape(-1)
+
+    def solve(self, rows, cols, blocks, rhs, n: int) -> torch.Tensor | None:
+        """``H⁻¹ rhs`` (as :meth:`SolverCloth._solve`), or ``None`` where ``H`` is not positive definite."""
+        size = n + 1
+        inside = (rows < n) & (cols < n)
+        key = torch.where(inside, rows, n) * size + torch.where(inside, cols, n)
+        if self.keys is None or self.size != size:
+            self._grow(key, n)
+        slot = torch.searchsorted(self.keys, key)
+        if not bool((self.keys[slot.clamp_max(self.keys.numel() - 1)] == key).all()):
+            self._grow(key, n)
+            slot = torch.searchsorted(self.keys, key)
+        summed = blocks.new_zeros(self.keys.numel(), 3, 3).index_add_(0, slot, blocks * inside[:, None, None])
+        summed[-1] = torch.eye(3, dtype=blocks.dtype, device=blocks.device)  # (n, n) sorts last
+        values = torch.empty_like(summed.view(-1))
+        values[self.position] = summed.view(-1)
+        if not self.solver.factor(self.crow, self.col, values):
+            return None
+        column = rhs if rhs.dim() == 2 else rhs[:, None]
+        x = self.solver.solve(torch.cat([column, column.new_zeros(3, column.shape[1])]))[: 3 * n]
+        return x if rhs.dim() == 2 else x[:, 0]
 
 
 def _dense_solve(rows, cols, blocks, rhs, n: int) -> torch.Tensor:

@@ -10,12 +10,13 @@ reference runs the same solver with the element energies, gradients and Hessians
 of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
 per-pair NumPy root finder, far too slow for a step).
 
-``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, dense Cholesky): 465.1 ms per
-frame (2.15 frames/s; 609.7 ms when every Newton sweep searched for contact candidates and the assembly masked out
-kinematic blocks), 7 Newton iterations and 840 contacts on the last step. Phases, synchronised, over frames 3-7 of
-the walk: 56 % the dense solves (a 20 ms cuSOLVER factorisation of the 11k-DOF matrix per Newton iteration), 24 %
-assembly (element Hessians, their batched eigen-filtering, COO indexing), 11 % candidate searches (1-3 per step),
-5 % the line search. The phase shares in ``extra`` leave out the warm-up step, which compiles the kernels.
+``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
+205.6 ms per frame (4.87 frames/s; 465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton
+iteration, 609.7 ms when every Newton sweep also searched for contact candidates), 7 Newton iterations and 840
+contacts on the last step. Phases, synchronised, over the timed steps: 47 % assembly (element Hessians, their
+batched eigen-filtering, COO indexing), 21 % candidate searches and filtering, 18 % the sparse solves (about 3 ms
+per Newton iteration: CSR values, factorisation, solve), 9 % the line search, 3 % CCD, 3 % friction. The phase
+shares in ``extra`` leave out the warm-up step, which compiles the kernels.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, beyond
 the dense solver's size, so block-Jacobi CG): 5.10 s per frame (0.196 frames/s; the two steps took 3.3 and 6.9 s),

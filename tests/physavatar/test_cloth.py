@@ -218,3 +218,35 @@ def test_bad_input_raises_clear_errors(device):
     with pytest.raises(ValueError, match="shape"):
         state = solver.initial_state()
         solver.step(ClothState(state.x[:-1], state.v[:-1]), state, control, 0.04)
+
+
+@pytest.mark.skipif(not cudss.available(), reason="needs cuDSS and a CUDA device")
+def test_cudss_pattern_grows_within_a_step_and_solves_exactly(device):
+    """A matrix whose blocks are a subset of the step's pattern so far reuses its analysis; a new block (a new
+    self-contact) grows it once; kinematic blocks (index n) never reach the solve."""
+    from physavatar.cloth import _dense_solve, _GrowingPattern
+
+    if device != "cuda":
+        pytest.skip("cuDSS runs on CUDA")
+    n = 6
+    g = torch.Generator().manual_seed(3)
+
+    def system(pairs):
+        rows = torch.tensor([i for i in range(n + 1)] + [a for a, b in pairs] + [b for a, b in pairs])
+        cols = torch.tensor([i for i in range(n + 1)] + [b for a, b in pairs] + [a for a, b in pairs])
+        off = 0.1 * torch.randn(len(pairs), 3, 3, generator=g, dtype=torch.float64)
+        diag = 10.0 * torch.eye(3, dtype=torch.float64).expand(n + 1, 3, 3)
+        blocks = torch.cat([diag, off, off.transpose(1, 2)])
+        rhs = torch.randn(3 * n, generator=g, dtype=torch.float64)
+        return [t.cuda() for t in (rows, cols, blocks, rhs)]
+
+    solve = _GrowingPattern(torch.device("cuda"))
+    chain = [(i, i + 1) for i in range(n - 1)]
+    for pairs, analyses in ((chain + [(0, 4), (2, n)], 1), (chain, 1), (chain + [(1, 5)], 2), (chain, 2)):
+        rows, cols, blocks, rhs = system(pairs)
+        x = solve.solve(rows, cols, blocks, rhs, n)
+        torch.testing.assert_close(x, _dense_solve(rows, cols, blocks, rhs, n), rtol=1e-12, atol=1e-14)
+        assert solve.solver.analyses == analyses
+    solve.reset()
+    solve.solve(*system(chain), n)
+    assert solve.solver.analyses == 3
