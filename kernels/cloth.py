@@ -48,6 +48,7 @@ __all__ = [
     "edge_edge_mollifier_threshold",
     "hinges_from_faces",
     "membrane_energy",
+    "pair_boxes_overlap",
     "plane_stress_lame",
     "point_triangle_ccd",
     "point_triangle_distance",
@@ -1358,6 +1359,73 @@ def _ccd(x, dx, pairs, edge_edge, min_distance, eta, max_iterations):
             device=backend.warp_device(),
         )
     return toi
+
+
+@wp.kernel
+def _pair_boxes_kernel(
+    x: wp.array(dtype=Any),
+    dx: wp.array(dtype=Any),
+    pairs: wp.array2d(dtype=wp.int32),
+    split: int,
+    dhat: Any,
+    overlap: wp.array(dtype=wp.uint8),
+):
+    i = wp.tid()
+    big = type(dhat)(1.0e300)
+    a_lo = type(x[0])(big, big, big)
+    a_hi = -a_lo
+    b_lo = a_lo
+    b_hi = a_hi
+    for k in range(4):
+        start = x[pairs[i, k]]
+        end = start + dx[pairs[i, k]]
+        lo = wp.min(start, end)
+        hi = wp.max(start, end)
+        if k < split:
+            a_lo = wp.min(a_lo, lo)
+            a_hi = wp.max(a_hi, hi)
+        else:
+            b_lo = wp.min(b_lo, lo)
+            b_hi = wp.max(b_hi, hi)
+    result = wp.uint8(1)
+    for axis in range(3):
+        if a_lo[axis] - dhat > b_hi[axis] or b_lo[axis] > a_hi[axis] + dhat:
+            result = wp.uint8(0)
+    overlap[i] = result
+
+
+def pair_boxes_overlap(
+    x: torch.Tensor, dx: torch.Tensor | None, pairs: torch.Tensor, split: int, dhat: float
+) -> torch.Tensor:
+    """Broad-phase test of contact pairs: whether the boxes of their two primitives, swept over ``x → x + dx``, lie
+    within ``dhat`` of each other.
+
+    Args:
+        x: ``[V, 3]`` float32 or float64 positions, m.
+        dx: ``[V, 3]`` displacements of the sweep, m, or ``None`` for the boxes at ``x``.
+        pairs: ``[N, 4]`` int32 vertex indices; the first ``split`` form one primitive, the rest the other
+            (1 for point–triangle pairs, 2 for edge–edge pairs).
+        split: 1 or 2.
+        dhat: distance, m, by which the first primitive's box is grown (the IPC activation distance ``d̂``).
+
+    Returns:
+        ``[N]`` bool.
+    """
+    _check_positions(x)
+    _check_index(pairs, 4, "pairs")
+    if split not in (1, 2):
+        raise ValueError(f"split ({split}) must be 1 (point–triangle pairs) or 2 (edge–edge pairs)")
+    dx = torch.zeros_like(x) if dx is None else _check_values(dx, x, tuple(x.shape), "dx")
+    overlap = torch.empty(pairs.shape[0], dtype=torch.uint8, device=x.device)
+    if pairs.shape[0]:
+        wp.launch(
+            _pair_boxes_kernel,
+            dim=pairs.shape[0],
+            inputs=[_vec3(x), _vec3(dx), backend.to_warp(pairs), split, _scalar(x)(dhat)],
+            outputs=[backend.to_warp(overlap)],
+            device=backend.warp_device(),
+        )
+    return overlap.view(torch.bool)
 
 
 def point_triangle_ccd(

@@ -62,6 +62,7 @@ import scipy.sparse.linalg
 import torch
 
 from kernels import backend, cloth, cudss
+from kernels import friction as kernels_friction
 from kernels.raycast import MeshBVH
 from kernels.spatial_hash import SpatialHash
 
@@ -345,40 +346,20 @@ def barrier_stiffness(config: ClothConfig, mean_mass: float, dt: float) -> float
 def friction_potential(
     displacement: torch.Tensor, friction: _Friction, eps: float, hessian: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """IPC's smoothed lagged friction potential ``D = Σ_k μλ_k f₀(‖u_k‖)`` (Li et al. 2020, Eq. 14–16).
-
-    ``u_k = P_k Σ_i w_ki Δx_i`` is the tangential relative displacement of contact ``k`` since the start of the
-    step (``P_k = I − n_k n_kᵀ``, weights and normal lagged). ``f₀(y) = −y³/(3ε²) + y²/ε + ε/3`` below
-    ``ε = ε_v Δt``, else ``y``; ``f₁ = f₀′``. Gradient ``w_i μλ (f₁/y) u``; Hessian blocks
-    ``w_i w_j μλ ((f₁/y) P + c u uᵀ)`` with ``c = −1/(ε² y)`` below ``ε`` and ``−1/y³`` above: PSD on both sides.
+    """IPC's smoothed lagged friction potential ``D = Σ_k μλ_k f₀(‖u_k‖)`` (Li et al. 2020, Eq. 14–16) of the lagged
+    contacts, by the Warp kernel :func:`kernels.friction.friction_potential`.
 
     Args:
         displacement: ``[N, 3]`` displacement of every vertex since the start of the step, m.
         friction: lagged contacts.
         eps: ``ε_v Δt``, m.
-        hessian: also return the ``[K, 12, 12]`` Hessians.
+        hessian: also return the ``[K, 12, 12]`` Hessians (PSD).
 
     Returns:
         ``(energy [K] (J), grad [K, 4, 3] (N), hess [K, 12, 12] or None)``.
     """
-    w = friction.weight
-    u = torch.einsum("kab,kb->ka", friction.projector, (w[:, :, None] * displacement[friction.index]).sum(1))
-    y = torch.linalg.norm(u, dim=1)
-    inside = y < eps
-    f0 = torch.where(inside, -(y**3) / (3 * eps * eps) + y * y / eps + eps / 3.0, y)
-    f1_over_y = torch.where(inside, 2.0 / eps - y / (eps * eps), 1.0 / y.clamp_min(eps))
-    force = friction.force
-    grad = (force * f1_over_y)[:, None, None] * w[:, :, None] * u[:, None, :]
-    hess = None
-    if hessian:
-        safe_y = y.clamp_min(1e-300)
-        c = torch.where(inside, -1.0 / (eps * eps * safe_y), -1.0 / safe_y**3)
-        c = torch.where(y > 0, c, torch.zeros_like(c))
-        block = f1_over_y[:, None, None] * friction.projector + c[:, None, None] * u[:, :, None] * u[:, None, :]
-        block = force[:, None, None] * block
-        hess = (w[:, :, None, None, None] * w[:, None, :, None, None] * block[:, None, None]).permute(0, 1, 3, 2, 4)
-        hess = hess.reshape(-1, 12, 12)
-    return force * f0, grad, hess
+    f = friction
+    return kernels_friction.friction_potential(displacement, f.index, f.weight, f.projector, f.force, eps, hessian)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -498,15 +479,6 @@ def _parallel(X: torch.Tensor, ee: torch.Tensor, sin2: float = 1e-8) -> torch.Te
     da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
     cross = (torch.linalg.cross(da, db) ** 2).sum(1)
     return cross < sin2 * (da * da).sum(1) * (db * db).sum(1)
-
-
-def _boxes_overlap(lo: torch.Tensor, hi: torch.Tensor, index: torch.Tensor, split: int, dhat: float) -> torch.Tensor:
-    """``[N]`` bool: pairs ``index [N, 4]`` whose two primitives' boxes (over vertex boxes ``[lo, hi]``; the first
-    ``split`` vertices form the first primitive, grown by ``dhat``) overlap."""
-    i = index.long()
-    a_lo, a_hi = lo[i[:, :split]].amin(1) - dhat, hi[i[:, :split]].amax(1) + dhat
-    b_lo, b_hi = lo[i[:, split:]].amin(1), hi[i[:, split:]].amax(1)
-    return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
 
 
 def _keep(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> _Pairs:
@@ -923,11 +895,10 @@ class SolverCloth:
         when ``cover`` covers it (:meth:`_covers`)."""
         dhat = self.config.contact_distance
         end = X + p
-        lo, hi = torch.minimum(X, end), torch.maximum(X, end)
         pairs = cover.pairs
-        pt_keep = _boxes_overlap(lo, hi, pairs.pt, 1, dhat)
+        pt_keep = cloth.pair_boxes_overlap(X, p, pairs.pt, 1, dhat)
         ee = pairs.ee.long()
-        ee_keep = _boxes_overlap(lo, hi, pairs.ee, 2, dhat) & ~(_parallel(X, ee) & _parallel(end, ee))
+        ee_keep = cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat) & ~(_parallel(X, ee) & _parallel(end, ee))
         return _keep(pairs, pt_keep, ee_keep)
 
     def _box_pairs(self, lo: torch.Tensor, hi: torch.Tensor, ctx: _StepContext) -> _Pairs:
@@ -982,7 +953,8 @@ class SolverCloth:
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
         dhat = self.config.contact_distance
-        return _keep(pairs, _boxes_overlap(X, X, pairs.pt, 1, dhat), _boxes_overlap(X, X, pairs.ee, 2, dhat))
+        pt_keep = cloth.pair_boxes_overlap(X, None, pairs.pt, 1, dhat)
+        return _keep(pairs, pt_keep, cloth.pair_boxes_overlap(X, None, pairs.ee, 2, dhat))
 
     def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> float:
         """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021)."""
@@ -1059,11 +1031,11 @@ class SolverCloth:
             for index, terms in ((near.pt, pt), (near.ee, ee)):
                 # only the active pairs (within d̂) enter: the others would add zero blocks joining garment vertices
                 # that no element joins, and so change the sparsity pattern (and cuDSS's analysis) every iteration
-                active = terms.energy > 0.0
-                if bool(active.any()):
-                    hess = cloth.project_psd(terms.hess[active]) if project else terms.hess[active]
-                    terms = cloth.ElementTerms(terms.energy[active], terms.grad[active], hess)
-                    add(index.long()[active], terms, dt2, "contact")
+                active = (terms.energy > 0.0).nonzero().squeeze(1)  # the one read back from the device
+                if active.numel():
+                    terms = cloth.ElementTerms(*(t.index_select(0, active) for t in terms))
+                    terms = terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
+                    add(index.long().index_select(0, active), terms, dt2, "contact")
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
                 X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, hessian

@@ -14,6 +14,7 @@ import torch
 from torch.func import grad, hessian, vmap
 
 __all__ = [
+    "pair_boxes_overlap",
     "barrier",
     "bending_energy",
     "dihedral_angle",
@@ -211,3 +212,13 @@ def edge_edge_first_contact(q0: np.ndarray, dq: np.ndarray, tol: float = 1e-8) -
         return edge_edge_sq_distance(torch.from_numpy(q)).item() < (tol * scale) ** 2
 
     return _first_coplanar_contact(q0, dq, touching)
+
+
+def pair_boxes_overlap(x, dx, pairs, split: int, dhat: float) -> torch.Tensor:
+    """Reference of :func:`kernels.cloth.pair_boxes_overlap`: per-vertex boxes of the sweep, united per primitive."""
+    end = x if dx is None else x + dx
+    lo, hi = torch.minimum(x, end), torch.maximum(x, end)
+    i = pairs.long()
+    a_lo, a_hi = lo[i[:, :split]].amin(1) - dhat, hi[i[:, :split]].amax(1) + dhat
+    b_lo, b_hi = lo[i[:, split:]].amin(1), hi[i[:, split:]].amax(1)
+    return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)

@@ -537,3 +537,22 @@ def test_bad_input_raises_clear_errors(device):
     degenerate[1] = degenerate[0]
     with pytest.raises(ValueError, match="zero area"):
         cloth.rest_state(_dev(degenerate), _dev(faces), _dev(hinges))
+
+
+@pytest.mark.parametrize("split", [1, 2])
+def test_pair_boxes_overlap_matches_the_reference(device, split):
+    """The swept-box test of contact pairs agrees with the torch boxes exactly, at rest and over a sweep."""
+    g = torch.Generator().manual_seed(split)
+    x = (0.05 * torch.rand(200, 3, generator=g, dtype=torch.float64)).to(device)
+    dx = (0.01 * torch.randn(200, 3, generator=g, dtype=torch.float64)).to(device)
+    pairs = torch.randint(0, 200, (3000, 4), generator=g, dtype=torch.int32).to(device)
+    for sweep in (None, dx):
+        for dhat in (1e-3, 5e-3):
+            got = cloth.pair_boxes_overlap(x, sweep, pairs, split, dhat)
+            want = ref.pair_boxes_overlap(x, sweep, pairs, split, dhat)
+            assert got.dtype == torch.bool
+            assert torch.equal(got, want)
+            assert 0 < int(got.sum()) < pairs.shape[0]  # both outcomes occur
+    assert cloth.pair_boxes_overlap(x, None, pairs[:0], split, 1e-3).shape == (0,)
+    with pytest.raises(ValueError, match="split"):
+        cloth.pair_boxes_overlap(x, None, pairs, 3, 1e-3)
