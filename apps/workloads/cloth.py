@@ -11,11 +11,11 @@ of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the k
 per-pair NumPy root finder, far too slow for a step).
 
 ``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-205.6 ms per frame (4.87 frames/s; 465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton
+203.9 ms per frame (4.91 frames/s; 465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton
 iteration, 609.7 ms when every Newton sweep also searched for contact candidates), 7 Newton iterations and 840
-contacts on the last step. Phases, synchronised, over the timed steps: 47 % assembly (element Hessians, their
-batched eigen-filtering, COO indexing), 21 % candidate searches and filtering, 18 % the sparse solves (about 3 ms
-per Newton iteration: CSR values, factorisation, solve), 9 % the line search, 3 % CCD, 3 % friction. The phase
+contacts on the last step. Phases, synchronised, over the timed steps: 46 % assembly (element Hessians, their
+batched eigen-filtering, COO indexing), 21 % candidate searches and filtering, 19 % the sparse solves (about 3 ms
+per Newton iteration: CSR values, factorisation, solve), 9 % the line search, 3 % friction, 2 % CCD. The phase
 shares in ``extra`` leave out the warm-up step, which compiles the kernels.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, beyond
