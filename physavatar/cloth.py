@@ -85,8 +85,8 @@ F64 = torch.float64
 DENSITY_RANGE = (200.0, 640.0)
 STIFFNESS_RANGE = (0.1, 8.0)
 DENSE_MAX_DOFS = 30_000
-"""Largest garment DOF count (3 per vertex) that ``linear_solver="auto"`` factors densely on CUDA (a float64 matrix
-of up to 7.2 GB)."""
+"""Largest garment DOF count (3 per vertex) that ``linear_solver="auto"`` factors densely on CUDA where cuDSS is
+not installed (a float64 matrix of up to 7.2 GB)."""
 LINEAR_SOLVERS = ("auto", "direct", "cudss", "dense", "cg")
 PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
 SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")

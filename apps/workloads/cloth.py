@@ -11,17 +11,18 @@ of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the k
 per-pair NumPy root finder, far too slow for a step).
 
 ``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-203.9 ms per frame (4.91 frames/s; 465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton
-iteration, 609.7 ms when every Newton sweep also searched for contact candidates), 7 Newton iterations and 840
-contacts on the last step. Phases, synchronised, over the timed steps: 46 % assembly (element Hessians, their
-batched eigen-filtering, COO indexing), 21 % candidate searches and filtering, 19 % the sparse solves (about 3 ms
-per Newton iteration: CSR values, factorisation, solve), 9 % the line search, 3 % friction, 2 % CCD. The phase
-shares in ``extra`` leave out the warm-up step, which compiles the kernels.
+203.9 ms per frame (4.91 frames/s) on one lease of the machine, 267-280 ms on two later ones for the same code
+(465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton iteration, 609.7 ms when every Newton
+sweep also searched for contact candidates), 7 Newton iterations and 840 contacts on the last step. Phases,
+synchronised, over the timed steps: 46 % assembly (element Hessians, their batched eigen-filtering, COO indexing),
+21 % candidate searches and filtering, 15-19 % the sparse solves (about 3 ms per Newton iteration: CSR values,
+factorisation, solve), 9 % the line search, 3 % friction, 2-3 % CCD. The phase shares in ``extra`` leave out the
+warm-up step, which compiles the kernels.
 
-``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, beyond
-the dense solver's size, so block-Jacobi CG): 5.10 s per frame (0.196 frames/s; the two steps took 3.3 and 6.9 s),
-1.55x the reference; 10 Newton iterations and 3114 contacts on the last step, whose time went 84 % to the CG solves,
-8 % to assembly and 5 % to the broad phase.
+``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, cuDSS):
+929.6 ms per frame (1.08 frames/s; 5.10 s with block-Jacobi CG, which needed thousands of iterations per solve),
+3.88x the reference; 10 Newton iterations and 3114 contacts on the last step, whose time went 47 % to assembly,
+21 % to the solves, 17 % to the broad phase and 13 % to the line search.
 """
 
 from __future__ import annotations
