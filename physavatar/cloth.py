@@ -1233,10 +1233,11 @@ class _GrowingPattern:
         size = n + 1
         inside = (rows < n) & (cols < n)
         key = torch.where(inside, rows, n) * size + torch.where(inside, cols, n)
-        if self.keys is None or self.size != size:
-            self._grow(key, n)
-        slot = torch.searchsorted(self.keys, key)
-        if not bool((self.keys[slot.clamp_max(self.keys.numel() - 1)] == key).all()):
+        known = self.keys is not None and self.size == size
+        if known:  # every block already in the pattern (the one read back from the device)
+            slot = torch.searchsorted(self.keys, key)
+            known = bool((self.keys[slot.clamp_max(self.keys.numel() - 1)] == key).all())
+        if not known:
             self._grow(key, n)
             slot = torch.searchsorted(self.keys, key)
         summed = blocks.new_zeros(self.keys.numel(), 3, 3).index_add_(0, slot, blocks * inside[:, None, None])
