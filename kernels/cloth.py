@@ -42,12 +42,15 @@ __all__ = [
     "ElementTerms",
     "barrier",
     "bending_energy",
+    "bending_energy_value",
     "contact_energy",
+    "contact_energy_value",
     "edge_edge_ccd",
     "edge_edge_distance",
     "edge_edge_mollifier_threshold",
     "hinges_from_faces",
     "membrane_energy",
+    "membrane_energy_value",
     "pair_boxes_overlap",
     "plane_stress_lame",
     "point_triangle_ccd",
@@ -219,7 +222,6 @@ def project_psd(hess: torch.Tensor, absolute: bool = False) -> torch.Tensor:
     return (eigvec * eigval.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
 
 
-
 # ---------------------------------------------------------------------------------------------------------------
 # Small generic building blocks
 # ---------------------------------------------------------------------------------------------------------------
@@ -268,6 +270,23 @@ def _store(energy: Any, grad: Any, hess: Any, i: int, e: Any, g: Any, h: Any, nv
 
 
 @wp.func
+def _stvk_density(x0: Any, x1: Any, x2: Any, dm_inv: Any, mu: Any, lam: Any):
+    """Columns ``f0, f1`` of ``F``, Green strain ``e00, e01, e11``, its trace and the StVK density ``Ψ``."""
+    one = type(mu)(1.0)
+    half = type(mu)(0.5)
+    d1 = x1 - x0
+    d2 = x2 - x0
+    f0 = d1 * dm_inv[0, 0] + d2 * dm_inv[1, 0]
+    f1 = d1 * dm_inv[0, 1] + d2 * dm_inv[1, 1]
+    e00 = half * (wp.dot(f0, f0) - one)
+    e01 = half * wp.dot(f0, f1)
+    e11 = half * (wp.dot(f1, f1) - one)
+    tr = e00 + e11
+    psi = mu * (e00 * e00 + type(mu)(2.0) * e01 * e01 + e11 * e11) + half * lam * tr * tr
+    return f0, f1, e00, e01, e11, tr, psi
+
+
+@wp.func
 def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, lam: Any):
     """StVK membrane energy of one triangle with its gradient and Hessian (PhysAvatar §3.2, Codim-IPC [52]).
 
@@ -276,23 +295,10 @@ def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, l
     gradient ``A P β_k`` with ``P = F S``, ``S = 2μE + λ tr(E) I``; Hessian block
     ``H_kl = A [(β_kᵀ S β_l) I + μ a_l a_kᵀ + μ (β_k·β_l) F Fᵀ + λ a_k a_lᵀ]``.
     """
-    one = type(area)(1.0)
-    half = type(area)(0.5)
-    d1 = x1 - x0
-    d2 = x2 - x0
     beta1 = wp.vector(dm_inv[0, 0], dm_inv[0, 1])
     beta2 = wp.vector(dm_inv[1, 0], dm_inv[1, 1])
     beta0 = -beta1 - beta2
-    f0 = d1 * beta1[0] + d2 * beta2[0]
-    f1 = d1 * beta1[1] + d2 * beta2[1]
-    c00 = wp.dot(f0, f0)
-    c01 = wp.dot(f0, f1)
-    c11 = wp.dot(f1, f1)
-    e00 = half * (c00 - one)
-    e01 = half * c01
-    e11 = half * (c11 - one)
-    tr = e00 + e11
-    psi = mu * (e00 * e00 + type(area)(2.0) * e01 * e01 + e11 * e11) + half * lam * tr * tr
+    f0, f1, e00, e01, e11, tr, psi = _stvk_density(x0, x1, x2, dm_inv, mu, lam)
     s00 = type(area)(2.0) * mu * e00 + lam * tr
     s01 = type(area)(2.0) * mu * e01
     s11 = type(area)(2.0) * mu * e11 + lam * tr
@@ -338,6 +344,23 @@ def _membrane_kernel(
     _store(energy, grad, hess, i, e, g, h, 3)
 
 
+@wp.kernel
+def _membrane_value_kernel(
+    x: wp.array(dtype=Any),
+    faces: wp.array2d(dtype=wp.int32),
+    rest_inv: wp.array(dtype=Any),
+    rest_area: wp.array(dtype=Any),
+    mu: wp.array(dtype=Any),
+    lam: wp.array(dtype=Any),
+    energy: wp.array(dtype=Any),
+):
+    i = wp.tid()
+    f0, f1, e00, e01, e11, tr, psi = _stvk_density(
+        x[faces[i, 0]], x[faces[i, 1]], x[faces[i, 2]], rest_inv[i], mu[i], lam[i]
+    )
+    energy[i] = rest_area[i] * psi
+
+
 def membrane_energy(
     x: torch.Tensor,
     faces: torch.Tensor,
@@ -365,6 +388,28 @@ def membrane_energy(
     Returns:
         :class:`ElementTerms` with ``energy [F]`` (J), ``grad [F, 3, 3]``, ``hess [F, 9, 9]``.
     """
+    n, inputs = _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam)
+    out = _allocate(x, n, 3)
+    _launch(_membrane_kernel, n, inputs, out)
+    return _finish(out, project)
+
+
+def membrane_energy_value(
+    x: torch.Tensor,
+    faces: torch.Tensor,
+    rest_inv: torch.Tensor,
+    rest_area: torch.Tensor,
+    mu: torch.Tensor | float,
+    lam: torch.Tensor | float,
+) -> torch.Tensor:
+    """The ``[F]`` energies of :func:`membrane_energy` alone (bit for bit the same), J: for line searches."""
+    n, inputs = _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam)
+    energy = torch.empty(n, dtype=x.dtype, device=x.device)
+    _launch(_membrane_value_kernel, n, inputs, [energy])
+    return energy
+
+
+def _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam) -> tuple[int, list]:
     _check_positions(x)
     _check_index(faces, 3, "faces")
     n = faces.shape[0]
@@ -372,23 +417,14 @@ def membrane_energy(
     rest_area = _check_values(rest_area, x, (n,), "rest_area")
     mu = _per_element(mu, x, n, "mu")
     lam = _per_element(lam, x, n, "lam")
-    out = _allocate(x, n, 3)
-    if n:
-        wp.launch(
-            _membrane_kernel,
-            dim=n,
-            inputs=[
-                _vec3(x),
-                backend.to_warp(faces),
-                backend.to_warp(rest_inv, dtype=wp.types.matrix((2, 2), _scalar(x))),
-                backend.to_warp(rest_area),
-                backend.to_warp(mu),
-                backend.to_warp(lam),
-            ],
-            outputs=[backend.to_warp(t) for t in out],
-            device=backend.warp_device(),
-        )
-    return _finish(out, project)
+    return n, [
+        _vec3(x),
+        backend.to_warp(faces),
+        backend.to_warp(rest_inv, dtype=wp.types.matrix((2, 2), _scalar(x))),
+        backend.to_warp(rest_area),
+        backend.to_warp(mu),
+        backend.to_warp(lam),
+    ]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -494,6 +530,21 @@ def _bending_kernel(
 
 
 @wp.kernel
+def _bending_value_kernel(
+    x: wp.array(dtype=Any),
+    hinges: wp.array2d(dtype=wp.int32),
+    rest_angle: wp.array(dtype=Any),
+    rest_weight: wp.array(dtype=Any),
+    k_bend: wp.array(dtype=Any),
+    energy: wp.array(dtype=Any),
+):
+    i = wp.tid()
+    theta = _dihedral_angle(x[hinges[i, 0]], x[hinges[i, 1]], x[hinges[i, 2]], x[hinges[i, 3]])
+    dtheta = theta - rest_angle[i]
+    energy[i] = k_bend[i] * rest_weight[i] * dtheta * dtheta
+
+
+@wp.kernel
 def _hinge_rest_kernel(
     x: wp.array(dtype=Any),
     hinges: wp.array2d(dtype=wp.int32),
@@ -551,28 +602,40 @@ def bending_energy(
     Returns:
         :class:`ElementTerms` with ``energy [H]`` (J), ``grad [H, 4, 3]``, ``hess [H, 12, 12]``.
     """
+    n, inputs = _bending_inputs(x, hinges, rest_angle, rest_weight, k_bend)
+    out = _allocate(x, n, 4)
+    _launch(_bending_kernel, n, inputs, out)
+    return _finish(out, project)
+
+
+def bending_energy_value(
+    x: torch.Tensor,
+    hinges: torch.Tensor,
+    rest_angle: torch.Tensor,
+    rest_weight: torch.Tensor,
+    k_bend: torch.Tensor | float,
+) -> torch.Tensor:
+    """The ``[H]`` energies of :func:`bending_energy` alone (bit for bit the same), J: for line searches."""
+    n, inputs = _bending_inputs(x, hinges, rest_angle, rest_weight, k_bend)
+    energy = torch.empty(n, dtype=x.dtype, device=x.device)
+    _launch(_bending_value_kernel, n, inputs, [energy])
+    return energy
+
+
+def _bending_inputs(x, hinges, rest_angle, rest_weight, k_bend) -> tuple[int, list]:
     _check_positions(x)
     _check_index(hinges, 4, "hinges")
     n = hinges.shape[0]
     rest_angle = _check_values(rest_angle, x, (n,), "rest_angle")
     rest_weight = _check_values(rest_weight, x, (n,), "rest_weight")
     k_bend = _per_element(k_bend, x, n, "k_bend")
-    out = _allocate(x, n, 4)
-    if n:
-        wp.launch(
-            _bending_kernel,
-            dim=n,
-            inputs=[
-                _vec3(x),
-                backend.to_warp(hinges),
-                backend.to_warp(rest_angle),
-                backend.to_warp(rest_weight),
-                backend.to_warp(k_bend),
-            ],
-            outputs=[backend.to_warp(t) for t in out],
-            device=backend.warp_device(),
-        )
-    return _finish(out, project)
+    return n, [
+        _vec3(x),
+        backend.to_warp(hinges),
+        backend.to_warp(rest_angle),
+        backend.to_warp(rest_weight),
+        backend.to_warp(k_bend),
+    ]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -832,7 +895,7 @@ def _corner(t0: Any, t1: Any, t2: Any, k: int):
 
 @wp.func
 def _point_triangle_value(p: Any, t0: Any, t1: Any, t2: Any):
-    """Squared point-triangle distance only (for CCD)."""
+    """Squared point-triangle distance only (CCD, energy values), bit for bit that of :func:`_point_triangle_terms`."""
     kind = _point_triangle_type(p, t0, t1, t2)
     d = type(p[0])(0.0)
     if kind <= 2:
@@ -846,7 +909,7 @@ def _point_triangle_value(p: Any, t0: Any, t1: Any, t2: Any):
     else:
         n = wp.cross(t1 - t0, t2 - t0)
         r = wp.dot(p - t0, n)
-        d = r * r / wp.dot(n, n)
+        d = r * (r / wp.dot(n, n))  # rounded as _point_plane rounds it
     return d
 
 
@@ -956,7 +1019,7 @@ def _pick(x0: Any, x1: Any, x2: Any, x3: Any, k: int):
 
 @wp.func
 def _edge_edge_value(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
-    """Squared edge-edge distance only (for CCD)."""
+    """Squared edge-edge distance only (CCD, energy values), bit for bit that of :func:`_edge_edge_terms`."""
     kind = _edge_edge_type(ea0, ea1, eb0, eb1, parallel_tol)
     d = type(parallel_tol)(0.0)
     if kind <= 3:
@@ -975,7 +1038,7 @@ def _edge_edge_value(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
     else:
         n = wp.cross(ea1 - ea0, eb1 - eb0)
         r = wp.dot(eb0 - ea0, n)
-        d = r * r / wp.dot(n, n)
+        d = r * (r / wp.dot(n, n))  # rounded as _point_plane rounds it
     return d
 
 
@@ -1147,6 +1210,51 @@ def _edge_edge_barrier_kernel(
     _store(energy, grad, hess, i, stiffness * m * b, g, h, 4)
 
 
+@wp.func
+def _mollifier_value(ea0: Any, ea1: Any, eb0: Any, eb1: Any, eps_x: Any):
+    """The mollifier of :func:`_mollifier` alone."""
+    m = type(eps_x)(1.0)
+    n = wp.cross(ea1 - ea0, eb1 - eb0)
+    c = wp.dot(n, n)
+    if c < eps_x:
+        q = c / eps_x
+        m = (type(eps_x)(2.0) - q) * q
+    return m
+
+
+@wp.kernel
+def _point_triangle_barrier_value_kernel(
+    x: wp.array(dtype=Any),
+    pairs: wp.array2d(dtype=wp.int32),
+    dhat: Any,
+    stiffness: Any,
+    energy: wp.array(dtype=Any),
+):
+    i = wp.tid()
+    d = _point_triangle_value(x[pairs[i, 0]], x[pairs[i, 1]], x[pairs[i, 2]], x[pairs[i, 3]])
+    b, b1, b2 = _barrier(d, dhat)
+    energy[i] = stiffness * b
+
+
+@wp.kernel
+def _edge_edge_barrier_value_kernel(
+    x: wp.array(dtype=Any),
+    pairs: wp.array2d(dtype=wp.int32),
+    eps_x: wp.array(dtype=Any),
+    dhat: Any,
+    stiffness: Any,
+    parallel_tol: Any,
+    energy: wp.array(dtype=Any),
+):
+    i = wp.tid()
+    ea0 = x[pairs[i, 0]]
+    ea1 = x[pairs[i, 1]]
+    eb0 = x[pairs[i, 2]]
+    eb1 = x[pairs[i, 3]]
+    b, b1, b2 = _barrier(_edge_edge_value(ea0, ea1, eb0, eb1, parallel_tol), dhat)
+    energy[i] = stiffness * _mollifier_value(ea0, ea1, eb0, eb1, eps_x[i]) * b
+
+
 def edge_edge_mollifier_threshold(x_rest: torch.Tensor, ee_pairs: torch.Tensor) -> torch.Tensor:
     """Mollifier threshold ``ε_x = 10⁻³ ‖ēa‖² ‖ēb‖²`` of each edge-edge pair from rest lengths (Li et al. 2020).
 
@@ -1194,38 +1302,51 @@ def contact_energy(
         ``(point_triangle, edge_edge)`` :class:`ElementTerms`, energies ``[P]`` / ``[Q]`` (J), gradients
         ``[·, 4, 3]``, Hessians ``[·, 12, 12]``.
     """
+    pt_inputs, ee_inputs = _contact_inputs(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness)
+    pt = _allocate(x, pt_pairs.shape[0], 4)
+    ee = _allocate(x, ee_pairs.shape[0], 4)
+    _launch(_point_triangle_barrier_kernel, pt_pairs.shape[0], pt_inputs, pt)
+    _launch(_edge_edge_barrier_kernel, ee_pairs.shape[0], ee_inputs, ee)
+    return _finish(pt, project), _finish(ee, project)
+
+
+def contact_energy_value(
+    x: torch.Tensor,
+    pt_pairs: torch.Tensor,
+    ee_pairs: torch.Tensor,
+    ee_eps_x: torch.Tensor,
+    dhat: float,
+    stiffness: float,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``[P]`` and ``[Q]`` energies of :func:`contact_energy` alone (bit for bit the same), J: for line
+    searches."""
+    pt_inputs, ee_inputs = _contact_inputs(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness)
+    pt = torch.empty(pt_pairs.shape[0], dtype=x.dtype, device=x.device)
+    ee = torch.empty(ee_pairs.shape[0], dtype=x.dtype, device=x.device)
+    _launch(_point_triangle_barrier_value_kernel, pt_pairs.shape[0], pt_inputs, [pt])
+    _launch(_edge_edge_barrier_value_kernel, ee_pairs.shape[0], ee_inputs, [ee])
+    return pt, ee
+
+
+def _contact_inputs(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness) -> tuple[list, list]:
     _check_positions(x)
     _check_index(pt_pairs, 4, "pt_pairs")
     _check_index(ee_pairs, 4, "ee_pairs")
     ee_eps_x = _check_values(ee_eps_x, x, (ee_pairs.shape[0],), "ee_eps_x")
     _check_dhat(dhat)
     scalar = _scalar(x)
-    pt = _allocate(x, pt_pairs.shape[0], 4)
-    ee = _allocate(x, ee_pairs.shape[0], 4)
-    if pt_pairs.shape[0]:
-        wp.launch(
-            _point_triangle_barrier_kernel,
-            dim=pt_pairs.shape[0],
-            inputs=[_vec3(x), backend.to_warp(pt_pairs), scalar(dhat), scalar(stiffness)],
-            outputs=[backend.to_warp(t) for t in pt],
-            device=backend.warp_device(),
-        )
-    if ee_pairs.shape[0]:
-        wp.launch(
-            _edge_edge_barrier_kernel,
-            dim=ee_pairs.shape[0],
-            inputs=[
-                _vec3(x),
-                backend.to_warp(ee_pairs),
-                backend.to_warp(ee_eps_x),
-                scalar(dhat),
-                scalar(stiffness),
-                _parallel_tol(x),
-            ],
-            outputs=[backend.to_warp(t) for t in ee],
-            device=backend.warp_device(),
-        )
-    return _finish(pt, project), _finish(ee, project)
+    points = _vec3(x)
+    return (
+        [points, backend.to_warp(pt_pairs), scalar(dhat), scalar(stiffness)],
+        [
+            points,
+            backend.to_warp(ee_pairs),
+            backend.to_warp(ee_eps_x),
+            scalar(dhat),
+            scalar(stiffness),
+            _parallel_tol(x),
+        ],
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -1361,6 +1482,13 @@ def _ccd(x, dx, pairs, edge_edge, min_distance, eta, max_iterations):
     return toi
 
 
+@wp.func
+def _edges_parallel(x0: Any, x1: Any, x2: Any, x3: Any, sin2: Any):
+    da = x1 - x0
+    db = x3 - x2
+    return wp.length_sq(wp.cross(da, db)) < sin2 * wp.length_sq(da) * wp.length_sq(db)
+
+
 @wp.kernel
 def _pair_boxes_kernel(
     x: wp.array(dtype=Any),
@@ -1368,6 +1496,7 @@ def _pair_boxes_kernel(
     pairs: wp.array2d(dtype=wp.int32),
     split: int,
     dhat: Any,
+    parallel: Any,
     overlap: wp.array(dtype=wp.uint8),
 ):
     i = wp.tid()
@@ -1391,14 +1520,27 @@ def _pair_boxes_kernel(
     for axis in range(3):
         if a_lo[axis] - dhat > b_hi[axis] or b_lo[axis] > a_hi[axis] + dhat:
             result = wp.uint8(0)
+    if result != wp.uint8(0) and split == 2 and parallel > type(dhat)(0.0):
+        q0 = x[pairs[i, 0]]
+        q1 = x[pairs[i, 1]]
+        q2 = x[pairs[i, 2]]
+        q3 = x[pairs[i, 3]]
+        if _edges_parallel(q0, q1, q2, q3, parallel):
+            q0 = q0 + dx[pairs[i, 0]]
+            q1 = q1 + dx[pairs[i, 1]]
+            q2 = q2 + dx[pairs[i, 2]]
+            q3 = q3 + dx[pairs[i, 3]]
+            if _edges_parallel(q0, q1, q2, q3, parallel):
+                result = wp.uint8(0)
     overlap[i] = result
 
 
 def pair_boxes_overlap(
-    x: torch.Tensor, dx: torch.Tensor | None, pairs: torch.Tensor, split: int, dhat: float
+    x: torch.Tensor, dx: torch.Tensor | None, pairs: torch.Tensor, split: int, dhat: float, parallel: float = 0.0
 ) -> torch.Tensor:
     """Broad-phase test of contact pairs: whether the boxes of their two primitives, swept over ``x → x + dx``, lie
-    within ``dhat`` of each other.
+    within ``dhat`` of each other (and, for edge pairs with ``parallel > 0``, whether the edges stay apart from
+    parallel at one end of the sweep at least).
 
     Args:
         x: ``[V, 3]`` float32 or float64 positions, m.
@@ -1407,6 +1549,8 @@ def pair_boxes_overlap(
             (1 for point–triangle pairs, 2 for edge–edge pairs).
         split: 1 or 2.
         dhat: distance, m, by which the first primitive's box is grown (the IPC activation distance ``d̂``).
+        parallel: ``sin²θ`` below which edge pairs (``split`` 2) count as parallel; pairs parallel at both ends of
+            the sweep are rejected. 0 keeps them.
 
     Returns:
         ``[N]`` bool.
@@ -1415,13 +1559,15 @@ def pair_boxes_overlap(
     _check_index(pairs, 4, "pairs")
     if split not in (1, 2):
         raise ValueError(f"split ({split}) must be 1 (point–triangle pairs) or 2 (edge–edge pairs)")
+    if not 0.0 <= parallel < 1.0:
+        raise ValueError(f"parallel ({parallel}) must be a sin² in [0, 1)")
     dx = torch.zeros_like(x) if dx is None else _check_values(dx, x, tuple(x.shape), "dx")
     overlap = torch.empty(pairs.shape[0], dtype=torch.uint8, device=x.device)
     if pairs.shape[0]:
         wp.launch(
             _pair_boxes_kernel,
             dim=pairs.shape[0],
-            inputs=[_vec3(x), _vec3(dx), backend.to_warp(pairs), split, _scalar(x)(dhat)],
+            inputs=[_vec3(x), _vec3(dx), backend.to_warp(pairs), split, _scalar(x)(dhat), _scalar(x)(parallel)],
             outputs=[backend.to_warp(overlap)],
             device=backend.warp_device(),
         )
@@ -1521,6 +1667,17 @@ def _per_element(value, x: torch.Tensor, n: int, what: str) -> torch.Tensor:
 def _check_dhat(dhat: float) -> None:
     if not dhat > 0.0:
         raise ValueError(f"dhat ({dhat}) must be positive: it is the squared activation distance d̂², m²")
+
+
+def _launch(kernel, n: int, inputs: list, outputs: list) -> None:
+    if n:
+        wp.launch(
+            kernel,
+            dim=n,
+            inputs=inputs,
+            outputs=[backend.to_warp(t) for t in outputs],
+            device=backend.warp_device(),
+        )
 
 
 def _allocate(x: torch.Tensor, n: int, nv: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -214,11 +214,21 @@ def edge_edge_first_contact(q0: np.ndarray, dq: np.ndarray, tol: float = 1e-8) -
     return _first_coplanar_contact(q0, dq, touching)
 
 
-def pair_boxes_overlap(x, dx, pairs, split: int, dhat: float) -> torch.Tensor:
-    """Reference of :func:`kernels.cloth.pair_boxes_overlap`: per-vertex boxes of the sweep, united per primitive."""
+def pair_boxes_overlap(x, dx, pairs, split: int, dhat: float, parallel: float = 0.0) -> torch.Tensor:
+    """Reference of :func:`kernels.cloth.pair_boxes_overlap`: per-vertex boxes of the sweep, united per primitive;
+    edge pairs parallel (``sin²θ < parallel``) at both ends dropped."""
     end = x if dx is None else x + dx
     lo, hi = torch.minimum(x, end), torch.maximum(x, end)
     i = pairs.long()
     a_lo, a_hi = lo[i[:, :split]].amin(1) - dhat, hi[i[:, :split]].amax(1) + dhat
     b_lo, b_hi = lo[i[:, split:]].amin(1), hi[i[:, split:]].amax(1)
-    return ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
+    overlap = ((a_lo <= b_hi) & (b_lo <= a_hi)).all(1)
+    if split == 2 and parallel > 0.0:
+
+        def parallel_at(q):
+            da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
+            cross = (torch.linalg.cross(da, db) ** 2).sum(1)
+            return cross < parallel * (da * da).sum(1) * (db * db).sum(1)
+
+        overlap &= ~(parallel_at(x[i]) & parallel_at(end[i]))
+    return overlap

@@ -431,6 +431,35 @@ def test_contact_energy_matches_reference_and_finite_differences(device):
     torch.testing.assert_close(b.hess[k], fd, rtol=1e-4, atol=1e-5 * b.hess[k].abs().max().item())
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_energy_values_equal_the_energies_of_the_derivative_kernels(device, dtype):
+    """The energy-only kernels of the line search give the energies of the full kernels: membrane and bending on a
+    deformed sheet, every point-triangle and edge-edge distance type (mollified pairs among them), pairs beyond d̂."""
+    x_rest, x, faces, hinges, rest = _deformed_sheet(3)
+    xx = _dev(x.to(dtype))
+    r = [_dev(t.to(dtype)) for t in rest]
+    exact = dict(rtol=1e-13 if dtype == torch.float64 else 1e-6, atol=0.0)
+    m = cloth.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 0.7)
+    torch.testing.assert_close(cloth.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy, **exact)
+    b = cloth.bending_energy(xx, _dev(hinges), r[2], r[3], 0.3)
+    torch.testing.assert_close(cloth.bending_energy_value(xx, _dev(hinges), r[2], r[3], 0.3), b.energy, **exact)
+    assert bool((m.energy > 0).all()) and bool((b.energy > 0).any())
+    dhat, kappa = 1e-4, 1e3
+    pt, ee, x, rest_x, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
+    args = (_dev(x.to(dtype)), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x.to(dtype)))
+    beyond = 0
+    for d in (dhat, dhat / 4):  # the smaller d̂ leaves some pairs beyond it
+        full = cloth.contact_energy(*args, d, kappa)
+        values = cloth.contact_energy_value(*args, d, kappa)
+        for got, want in zip(values, full, strict=True):
+            torch.testing.assert_close(got, want.energy, **exact)
+            beyond += int((want.energy == 0).sum())
+    assert 0 < beyond < 2 * pt_pairs.shape[0]
+    assert cloth.contact_energy_value(*args[:1], _dev(pt_pairs[:0]), _dev(ee_pairs[:0]), args[3][:0], dhat, 1.0)[
+        0
+    ].shape == (0,)
+
+
 # ------------------------------------------------------------------------------------------------------------
 # Additive CCD
 # ------------------------------------------------------------------------------------------------------------
@@ -556,3 +585,28 @@ def test_pair_boxes_overlap_matches_the_reference(device, split):
     assert cloth.pair_boxes_overlap(x, None, pairs[:0], split, 1e-3).shape == (0,)
     with pytest.raises(ValueError, match="split"):
         cloth.pair_boxes_overlap(x, None, pairs, 3, 1e-3)
+    with pytest.raises(ValueError, match="parallel"):
+        cloth.pair_boxes_overlap(x, None, pairs, split, 1e-3, parallel=1.0)
+
+
+def test_pair_boxes_overlap_drops_edges_parallel_over_the_whole_sweep(device):
+    """Edge pairs parallel at both ends of the sweep are rejected, those that turn away at one end kept; the test
+    agrees with the torch reference and leaves point-triangle pairs alone."""
+    g = torch.Generator().manual_seed(7)
+    n = 300
+    a0 = 0.05 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    direction = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    offset = 2e-4 * torch.rand(n, 3, generator=g, dtype=torch.float64)
+    # edge b: edge a shifted by under 0.2 mm on each axis, so that every box overlaps; parallel at the start
+    x = torch.cat([a0, a0 + 0.01 * direction, a0 + offset, a0 + offset + 0.01 * direction])
+    idx = torch.arange(n, dtype=torch.int32)
+    pairs = torch.stack([idx, idx + n, idx + 2 * n, idx + 3 * n], 1)
+    dx = torch.zeros_like(x)
+    turned = torch.arange(n) % 2 == 1  # every other edge b turns away from parallel during the sweep
+    dx[3 * n :][turned] = 0.004 * torch.randn(int(turned.sum()), 3, generator=g, dtype=torch.float64)
+    x, dx, pairs = x.to(device), dx.to(device), pairs.to(device)
+    got = cloth.pair_boxes_overlap(x, dx, pairs, 2, 1e-3, parallel=1e-8)
+    assert torch.equal(got, ref.pair_boxes_overlap(x, dx, pairs, 2, 1e-3, parallel=1e-8))
+    assert torch.equal(got.cpu(), turned)
+    assert bool(cloth.pair_boxes_overlap(x, dx, pairs, 2, 1e-3).all())  # parallel=0 keeps them
+    assert bool(cloth.pair_boxes_overlap(x, dx, pairs, 1, 1e-3, parallel=1e-8).all())
