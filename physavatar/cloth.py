@@ -63,8 +63,8 @@ import torch
 
 from kernels import backend, cloth, cudss
 from kernels import friction as kernels_friction
+from kernels.broad_phase import BoxTree
 from kernels.raycast import MeshBVH
-from kernels.spatial_hash import SpatialHash
 
 __all__ = [
     "ClothConfig",
@@ -133,11 +133,10 @@ class ClothConfig:
         candidate_margin: how far, m, the contact candidates of a step reach beyond each vertex's predicted path
             (start to inertial target, or to its target for kinematic vertices). The candidates are found once and
             serve every Newton iteration whose sweep stays within that reach; a sweep that leaves it finds them
-            anew. Larger margins mean fewer searches and more candidates to filter. ``None``: 5 mm on CUDA, where a
-            search is dozens of launches and host syncs, 2 mm on the CPU, where filtering many candidates costs as
-            much. Measured on skirt7271 walking, 5 frames on an H100: 2 mm took 3–5 searches per step and 80 ms
-            per frame in the broad phase, 5 mm 1–3 searches and 49 ms; on a 2-core CPU, 2 mm matched a search at
-            every sweep and 5 mm put 48 % of the step into the broad phase instead of 29 %.
+            anew. Larger margins mean fewer searches and more candidates to filter. ``None``: 5 mm on CUDA, 2 mm on
+            the CPU, where filtering many candidates costs more than searching again. Measured on skirt7271
+            walking, the same 10 frames (81 Newton iterations) on an H100: 159.5 ms per frame with 5 mm, 171.3
+            with 3 mm, 173.9 with 2 mm; the same 6 frames on a 2-core CPU: 3.60 s with 2 mm, 3.78 s with 5 mm.
     """
 
     density: float = 472.641509
@@ -262,11 +261,15 @@ class StepStats:
 
 class ClothEnergies(NamedTuple):
     """Per-element energy evaluators (signatures of :func:`kernels.cloth.membrane_energy`, ``bending_energy``,
-    ``contact_energy``); the benchmark swaps in the autograd references."""
+    ``contact_energy`` and their energy-only ``*_value`` twins, which the line search calls); the benchmark swaps
+    in the autograd references."""
 
     membrane: Callable = cloth.membrane_energy
     bending: Callable = cloth.bending_energy
     contact: Callable = cloth.contact_energy
+    membrane_value: Callable = cloth.membrane_energy_value
+    bending_value: Callable = cloth.bending_energy_value
+    contact_value: Callable = cloth.contact_energy_value
 
 
 class _Pairs(NamedTuple):
@@ -363,137 +366,27 @@ def friction_potential(
 
 
 # ---------------------------------------------------------------------------------------------------------------
-# Closest points of contact pairs (friction's lagged tangent bases)
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def _point_triangle_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
-    """Weights ``w [P, 4]`` with ``Σ w_i q_i`` = point minus its closest triangle point, by closest-feature type."""
-    p, t = q[:, 0], q[:, 1:]
-    n = q.shape[0]
-    w = torch.zeros(n, 4, dtype=q.dtype, device=q.device)
-    w[:, 0] = 1.0
-    rows = torch.arange(n, device=q.device)
-    k = kind.long()
-    vertex = k <= 2
-    w[rows[vertex], 1 + k[vertex]] = -1.0
-    edge = (k >= 3) & (k <= 5)
-    a = (k - 3).clamp(0, 2)
-    b = (a + 1) % 3
-    ta, tb = t[rows, a], t[rows, b]
-    e = tb - ta
-    s = (((p - ta) * e).sum(1) / (e * e).sum(1)).clamp(0.0, 1.0)
-    w[rows[edge], 1 + a[edge]] = -(1.0 - s[edge])
-    w[rows[edge], 1 + b[edge]] = -s[edge]
-    face = k == 6
-    e1, e2, r = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0], p - t[:, 0]
-    a11, a12, a22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-    r1, r2 = (r * e1).sum(1), (r * e2).sum(1)
-    det = a11 * a22 - a12 * a12
-    beta1 = (a22 * r1 - a12 * r2) / det
-    beta2 = (a11 * r2 - a12 * r1) / det
-    w[face, 1] = -(1.0 - beta1[face] - beta2[face])
-    w[face, 2] = -beta1[face]
-    w[face, 3] = -beta2[face]
-    return w
-
-
-def _edge_edge_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
-    """Weights ``w [Q, 4]`` with ``Σ w_i q_i`` = closest point of edge a minus that of edge b, by type."""
-    n = q.shape[0]
-    rows = torch.arange(n, device=q.device)
-    k = kind.long()
-    w = torch.zeros(n, 4, dtype=q.dtype, device=q.device)
-    ends = k <= 3
-    w[rows[ends], (k // 2)[ends]] = 1.0
-    w[rows[ends], (k % 2 + 2)[ends]] = -1.0
-    da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
-    # an end point of b against edge a (types 4, 5)
-    on_a = (k == 4) | (k == 5)
-    pb = q[rows, (k - 2).clamp(2, 3)]
-    s = (((pb - q[:, 0]) * da).sum(1) / (da * da).sum(1)).clamp(0.0, 1.0)
-    w[on_a, 0] = 1.0 - s[on_a]
-    w[on_a, 1] = s[on_a]
-    w[rows[on_a], (k - 2)[on_a].clamp(2, 3)] = -1.0
-    # an end point of a against edge b (types 6, 7)
-    on_b = (k == 6) | (k == 7)
-    pa = q[rows, (k - 6).clamp(0, 1)]
-    t = (((pa - q[:, 2]) * db).sum(1) / (db * db).sum(1)).clamp(0.0, 1.0)
-    w[rows[on_b], (k - 6)[on_b].clamp(0, 1)] = 1.0
-    w[on_b, 2] = -(1.0 - t[on_b])
-    w[on_b, 3] = -t[on_b]
-    # interior line-line (type 8)
-    line = k == 8
-    r = q[:, 0] - q[:, 2]
-    a, e, b = (da * da).sum(1), (db * db).sum(1), (da * db).sum(1)
-    c, f = (da * r).sum(1), (db * r).sum(1)
-    den = (a * e - b * b).clamp_min(torch.finfo(q.dtype).tiny)
-    s_l, t_l = (b * f - c * e) / den, (a * f - b * c) / den
-    w[line, 0] = 1.0 - s_l[line]
-    w[line, 1] = s_l[line]
-    w[line, 2] = -(1.0 - t_l[line])
-    w[line, 3] = -t_l[line]
-    return w
-
-
-# ---------------------------------------------------------------------------------------------------------------
 # Broad phase
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def _overlaps(q_lo, q_hi, p_lo, p_hi) -> tuple[torch.Tensor, torch.Tensor]:
-    """Index pairs ``(i, j)`` of query boxes ``i`` and primitive boxes ``j`` that overlap (float64 boxes).
+PARALLEL_SIN2 = 1e-8
+"""Edge pairs closer to parallel than ``sin²θ < 10⁻⁸`` over a whole sweep leave the edge–edge candidates.
 
-    A hash grid over the primitive box centres finds every primitive whose centre lies within the sum of the
-    largest half-diagonals of the two sets; the exact box test then filters.
-    """
-    empty = torch.zeros(0, dtype=torch.int64, device=q_lo.device)
-    if q_lo.shape[0] == 0 or p_lo.shape[0] == 0:
-        return empty, empty
-    p_center, q_center = 0.5 * (p_lo + p_hi), 0.5 * (q_lo + q_hi)
-    reach = float(torch.linalg.norm(p_hi - p_lo, dim=1).max() + torch.linalg.norm(q_hi - q_lo, dim=1).max()) * 0.5
-    scale = float(torch.cat([p_center, q_center]).abs().max())
-    radius = reach * (1.0 + 1e-5) + 1e-6 * (1.0 + scale)  # float32 rounding of the centres
-    grid = SpatialHash(p_center.float().contiguous(), radius)
-    queries = q_center.float().contiguous()
-    capacity = 32
-    index, count = grid.radius_neighbours(queries, radius, capacity)
-    most = int(count.max())
-    if most > capacity:
-        index, count = grid.radius_neighbours(queries, radius, most)
-    valid = index >= 0
-    i = torch.arange(q_lo.shape[0], device=q_lo.device)[:, None].expand_as(index)[valid]
-    j = index[valid].long()
-    keep = ((q_lo[i] <= p_hi[j]) & (p_lo[j] <= q_hi[i])).all(1)
-    return i[keep], j[keep]
-
-
-def _parallel(X: torch.Tensor, ee: torch.Tensor, sin2: float = 1e-8) -> torch.Tensor:
-    """Edge pairs closer to parallel than ``sin²θ < 10⁻⁸``.
-
-    Their distance is the smallest end point–segment distance, which the point–triangle pairs of the edges'
-    triangles already bound; the edge-edge kernels classify such pairs by a machine-epsilon test and can
-    report a line-line distance of 0 for parallel, separated edges, so they are left out of the edge-edge set.
-    """
-    q = X[ee]
-    da, db = q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]
-    cross = (torch.linalg.cross(da, db) ** 2).sum(1)
-    return cross < sin2 * (da * da).sum(1) * (db * db).sum(1)
+Their distance is the smallest end point–segment distance, which the point–triangle pairs of the edges' triangles
+already bound; the edge-edge kernels classify such pairs by a machine-epsilon test and can report a line-line
+distance of 0 for parallel, separated edges."""
 
 
 def _keep(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> _Pairs:
-    """The pairs selected by the masks, with the garment–body counts (one read back from the device)."""
-    counts = torch.stack([pt_keep[: pairs.pt_body].sum(), ee_keep[: pairs.ee_body].sum()]).tolist()
-    return _Pairs(pairs.pt[pt_keep].contiguous(), pairs.ee[ee_keep].contiguous(), counts[0], counts[1])
-
-
-def _within(lo: torch.Tensor, hi: torch.Tensor, box_lo: torch.Tensor, box_hi: torch.Tensor) -> torch.Tensor:
-    """``[N]`` bool: boxes ``[lo, hi]`` that overlap the box ``[box_lo, box_hi]``."""
-    return ((lo <= box_hi) & (box_lo <= hi)).all(1)
-
-
-def _boxes(lo: torch.Tensor, hi: torch.Tensor, prims: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    return lo[prims].amin(1), hi[prims].amax(1)
+    """The pairs selected by the masks, with the garment–body counts (one read back from the device: the counts
+    size the selections)."""
+    pt_body, pt, ee_body, ee = torch.stack(
+        [pt_keep[: pairs.pt_body].sum(), pt_keep.sum(), ee_keep[: pairs.ee_body].sum(), ee_keep.sum()]
+    ).tolist()
+    pt_rows = torch.nonzero_static(pt_keep, size=pt).squeeze(1)
+    ee_rows = torch.nonzero_static(ee_keep, size=ee).squeeze(1)
+    return _Pairs(pairs.pt.index_select(0, pt_rows), pairs.ee.index_select(0, ee_rows), pt_body, ee_body)
 
 
 def _unique_edges(faces: torch.Tensor) -> torch.Tensor:
@@ -555,6 +448,12 @@ class SolverCloth:
         v = self.vertex_count
         self.body_faces = (body_faces.to(device).long() + v).contiguous()
         self.body_edges = _unique_edges(body_faces.to(device)) + v if body_faces.numel() else self.edges[:0]
+        # the primitives of the broad phase, as int32 vertex tuples
+        self._points = torch.arange(v, dtype=torch.int32, device=device)[:, None].contiguous()
+        self._edges = self.edges.to(torch.int32).contiguous()
+        self._body_points = torch.arange(v, v + self.body_vertex_count, dtype=torch.int32, device=device)[:, None]
+        self._body_faces = self.body_faces.to(torch.int32).contiguous()
+        self._body_edges = self.body_edges.to(torch.int32).contiguous()
         solver = config.linear_solver
         if solver == "auto":
             if device.type != "cuda":
@@ -646,7 +545,7 @@ class SolverCloth:
         for _ in range(cfg.max_newton_iterations):
             iterations += 1
             start = clock()
-            energy, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx, hessian=True)
+            energy, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx)
             p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
             rows, cols, blocks, rhs = self._assemble(elements, grad, p_kin, ctx)
             timing["assemble"] += clock() - start
@@ -655,8 +554,10 @@ class SolverCloth:
             timing["solve"] += clock() - start
             p = p_kin.clone()
             p[free] = p_free.view(-1, 3)
-            reached = bool((p_kin == 0).all())
-            if reached and (float(p_free.abs().max()) if p_free.numel() else 0.0) / dt < cfg.newton_tolerance:
+            step = p_free.abs().max() if p_free.numel() else p_free.new_zeros(())
+            reached, step = torch.stack([(p_kin == 0).all().to(step.dtype), step]).tolist()  # one device read
+            reached = reached == 1.0
+            if reached and step / dt < cfg.newton_tolerance:
                 converged = True
                 break
             start = clock()
@@ -672,7 +573,7 @@ class SolverCloth:
             if reached:
                 while alpha > 1e-12:
                     trial = X + alpha * p
-                    trial_energy = self._potential(trial, self._near(trial, pairs, ctx), ctx, hessian=False)[0]
+                    trial_energy = self._energy(trial, self._near(trial, pairs, ctx), ctx)
                     if trial_energy <= energy:
                         break
                     alpha *= 0.5
@@ -782,9 +683,7 @@ class SolverCloth:
             ctx = ctx._replace(friction=self._lagged_friction(X_start, pairs_start, ctx))
         pairs = self._broad_phase(X, torch.zeros_like(X), ctx)
         parts: dict[str, torch.Tensor] = {}
-        _, grad, elements = self._potential(
-            X, self._near(X, pairs, ctx), ctx, hessian=True, project=not exact_hessian, parts=parts
-        )
+        _, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx, project=not exact_hessian, parts=parts)
         rows, cols, blocks, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
 
         rhs = X.new_zeros(v + nb, 3, count)
@@ -891,64 +790,36 @@ class SolverCloth:
 
     def _swept(self, X: torch.Tensor, p: torch.Tensor, cover: _Cover) -> _Pairs:
         """The candidates of ``cover`` whose boxes, swept over ``X → X + p`` and grown by ``d̂``, overlap, less
-        edge pairs parallel at both ends of the sweep (:func:`_parallel`). Equal to a fresh search of the sweep
+        edge pairs parallel at both ends of the sweep (:data:`PARALLEL_SIN2`). Equal to a fresh search of the sweep
         when ``cover`` covers it (:meth:`_covers`)."""
         dhat = self.config.contact_distance
-        end = X + p
         pairs = cover.pairs
         pt_keep = cloth.pair_boxes_overlap(X, p, pairs.pt, 1, dhat)
-        ee = pairs.ee.long()
-        ee_keep = cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat) & ~(_parallel(X, ee) & _parallel(end, ee))
+        ee_keep = cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat, parallel=PARALLEL_SIN2)
         return _keep(pairs, pt_keep, ee_keep)
 
     def _box_pairs(self, lo: torch.Tensor, hi: torch.Tensor, ctx: _StepContext) -> _Pairs:
         """Pairs whose primitives' boxes overlap, given each vertex's box ``[lo, hi]`` (the query side grown by
-        ``d̂``): garment vertices and edges against body triangles and edges, then the garment against itself."""
-        v = self.vertex_count
+        ``d̂``): garment vertices and edges against body triangles and edges, then the garment against itself.
+        Pairs that share a vertex or whose vertices are all kinematic are left out.
+
+        The BVHs are over the garment's primitives only: a body primitive far from the garment stops at the root
+        (a skirt meets the hips, not the 15k triangles of the whole body)."""
         dhat = self.config.contact_distance
-        q_lo, q_hi = lo - dhat, hi + dhat
-        tri_lo, tri_hi = _boxes(lo, hi, self.faces.long())
-        edge_lo, edge_hi = _boxes(lo, hi, self.edges)
-        pieces_pt, pieces_ee = [], []
-        # garment vertices against body triangles, body vertices against garment triangles
-        if self.body_vertex_count:
-            # only body primitives within reach of the garment's swept box enter the hash grids (a skirt
-            # meets the hips, not the 15k triangles of the whole body)
-            reach_lo, reach_hi = q_lo[:v].amin(0), q_hi[:v].amax(0)
-            body_lo, body_hi = _boxes(lo, hi, self.body_faces)
-            near = _within(body_lo, body_hi, reach_lo, reach_hi).nonzero().squeeze(1)
-            i, j = _overlaps(q_lo[:v], q_hi[:v], body_lo[near], body_hi[near])
-            pieces_pt.append(torch.cat([i[:, None], self.body_faces[near[j]]], 1))
-            near = _within(q_lo[v:], q_hi[v:], reach_lo, reach_hi).nonzero().squeeze(1)
-            i, j = _overlaps(q_lo[v:][near], q_hi[v:][near], tri_lo, tri_hi)
-            pieces_pt.append(torch.cat([(near[i] + v)[:, None], self.faces.long()[j]], 1))
-            bedge_lo, bedge_hi = _boxes(q_lo, q_hi, self.body_edges)
-            near = _within(bedge_lo, bedge_hi, reach_lo, reach_hi).nonzero().squeeze(1)
-            i, j = _overlaps(bedge_lo[near], bedge_hi[near], edge_lo, edge_hi)
-            pieces_ee.append(torch.cat([self.edges[j], self.body_edges[near[i]]], 1))
-        pt_body = sum(t.shape[0] for t in pieces_pt)
-        ee_body = sum(t.shape[0] for t in pieces_ee)
-        # self contact, excluding primitives that share a vertex
-        i, j = _overlaps(q_lo[:v], q_hi[:v], tri_lo, tri_hi)
-        tri = self.faces.long()[j]
-        keep = (tri != i[:, None]).all(1)
-        pieces_pt.append(torch.cat([i[keep, None], tri[keep]], 1))
-        qe_lo, qe_hi = _boxes(q_lo, q_hi, self.edges)
-        i, j = _overlaps(qe_lo, qe_hi, edge_lo, edge_hi)
-        a, b = self.edges[i], self.edges[j]
-        keep = (i < j) & (a[:, :, None] != b[:, None, :]).all(2).all(1)
-        pieces_ee.append(torch.cat([a[keep], b[keep]], 1))
-        pt = torch.cat(pieces_pt)
-        ee = torch.cat(pieces_ee)
-        # pairs whose four vertices are all kinematic cannot be resolved by the garment: leave them out
-        pt_keep = ~ctx.kinematic[pt].all(1)
-        ee_keep = ~ctx.kinematic[ee].all(1)
-        return _Pairs(
-            pt[pt_keep].to(torch.int32).contiguous(),
-            ee[ee_keep].to(torch.int32).contiguous(),
-            int(pt_keep[:pt_body].sum()),
-            int(ee_keep[:ee_body].sum()),
-        )
+        lo, hi = lo.contiguous(), hi.contiguous()
+        kinematic = ctx.kinematic
+        points = BoxTree(lo, hi, self._points)
+        triangles = BoxTree(lo, hi, self.faces)
+        edges = BoxTree(lo, hi, self._edges)
+        pt = [  # garment vertices against body triangles, body vertices against garment triangles
+            points.overlaps(self._body_faces, dhat, kinematic, tree_first=True),
+            triangles.overlaps(self._body_points, dhat, kinematic),
+        ]
+        ee = [edges.overlaps(self._body_edges, dhat, kinematic, tree_first=True)]
+        pt_body, ee_body = pt[0].shape[0] + pt[1].shape[0], ee[0].shape[0]
+        pt.append(triangles.overlaps(self._points, dhat, kinematic))
+        ee.append(edges.overlaps(self._edges, dhat, kinematic, same=True))
+        return _Pairs(torch.cat(pt), torch.cat(ee), pt_body, ee_body)
 
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
@@ -959,23 +830,23 @@ class SolverCloth:
     def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> float:
         """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021)."""
         eta = self.config.ccd_eta
-        alpha = 1.0
+        times = [X.new_ones(1)]
         if pairs.pt.shape[0]:
-            alpha = min(alpha, float(cloth.point_triangle_ccd(X, p, pairs.pt, eta=eta).min()))
+            times.append(cloth.point_triangle_ccd(X, p, pairs.pt, eta=eta))
         if pairs.ee.shape[0]:
-            alpha = min(alpha, float(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta).min()))
-        return alpha
+            times.append(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta))
+        return float(torch.cat(times).min())
 
     def _potential(
         self,
         X: torch.Tensor,
         near: _Pairs,
         ctx: _StepContext,
-        hessian: bool,
         project: bool = True,
         parts: dict[str, torch.Tensor] | None = None,
     ):
-        """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians.
+        """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (:meth:`_energy` is
+        ``E`` alone).
 
         The element Hessians are PSD-projected unless ``project`` is False (friction's are PSD by construction).
         ``parts``, when given, receives the gradient ``[V + B, 3]`` of each term that is present, by name:
@@ -996,8 +867,7 @@ class SolverCloth:
             nonlocal energy
             energy = energy + scale * terms.energy.sum()
             grad.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
-            if hessian:
-                elements.append((index, scale * terms.hess))
+            elements.append((index, scale * terms.hess))
             if parts is not None:
                 part = parts.setdefault(name, torch.zeros_like(X))
                 part.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
@@ -1013,7 +883,6 @@ class SolverCloth:
         if parts is not None:
             parts["inertia"] = torch.zeros_like(X)
             parts["inertia"][:v] = inertia
-        project = hessian and project
         absolute = cfg.elastic_projection == "abs" or (cfg.elastic_projection == "auto" and not cfg.static)
 
         def elastic(terms: cloth.ElementTerms) -> cloth.ElementTerms:
@@ -1028,20 +897,44 @@ class SolverCloth:
         if near.pt.shape[0] or near.ee.shape[0]:
             eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
             pt, ee = e.contact(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa, project=False)
-            for index, terms in ((near.pt, pt), (near.ee, ee)):
-                # only the active pairs (within d̂) enter: the others would add zero blocks joining garment vertices
-                # that no element joins, and so change the sparsity pattern (and cuDSS's analysis) every iteration
-                active = (terms.energy > 0.0).nonzero().squeeze(1)  # the one read back from the device
-                if active.numel():
+            # only the active pairs (within d̂) enter: the others would add zero blocks joining garment vertices
+            # that no element joins, and so change the sparsity pattern (and cuDSS's analysis) every iteration
+            counts = torch.stack([(pt.energy > 0.0).sum(), (ee.energy > 0.0).sum()]).tolist()  # one device read
+            for index, terms, count in ((near.pt, pt, counts[0]), (near.ee, ee, counts[1])):
+                if count:
+                    active = torch.nonzero_static(terms.energy > 0.0, size=count).squeeze(1)
                     terms = cloth.ElementTerms(*(t.index_select(0, active) for t in terms))
                     terms = terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
                     add(index.long().index_select(0, active), terms, dt2, "contact")
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
-                X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, hessian
+                X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, True
             )
             add(ctx.friction.index, cloth.ElementTerms(f_energy, f_grad, f_hess), dt2, "friction")
         return energy, grad, elements
+
+    def _energy(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext) -> torch.Tensor:
+        """The incremental potential ``E(X)`` of :meth:`_potential` alone (0-d), from the energy-only kernels: what
+        the line search compares, without the element derivatives."""
+        cfg, dt2 = self.config, ctx.dt * ctx.dt
+        v = self.vertex_count
+        x = X[:v].contiguous()
+        if cfg.static:
+            energy = -dt2 * (self.mass[:, None] * self.gravity * x).sum()
+        else:
+            r = (x - ctx.x_hat) * (~ctx.kinematic[:v])[:, None]
+            energy = 0.5 * (self.mass[:, None] * r * r).sum()
+        e, rest = self.energies, self.rest
+        terms = [
+            e.membrane_value(x, self.faces, rest.rest_inv, rest.rest_area, self.membrane_mu, self.membrane_lambda),
+            e.bending_value(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend),
+        ]
+        if near.pt.shape[0] or near.ee.shape[0]:
+            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
+            terms.extend(e.contact_value(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa))
+        if ctx.friction is not None and ctx.friction.index.shape[0]:
+            terms.append(friction_potential(X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, False)[0])
+        return energy + dt2 * torch.cat(terms).sum()
 
     def _assemble(self, elements, grad: torch.Tensor, p_kin: torch.Tensor, ctx: _StepContext):
         """Hessian blocks (COO, 3×3) of the free DOFs and the right-hand side ``−g_f − H_fk p_k``.
@@ -1098,40 +991,14 @@ class SolverCloth:
         )
 
     def _lagged_friction(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Friction:
-        """Normal forces ``λ_k``, closest-point weights and tangent projectors of the contacts at ``x^t`` (IPC §5)."""
+        """Normal forces ``μλ_k``, closest-point weights and tangent projectors of the contacts at ``x^t`` (IPC §5),
+        by the Warp kernel :func:`kernels.friction.lagged_contacts`."""
         near = self._near(X, pairs, ctx)
+        eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
         dhat2 = self.config.contact_distance**2
-        pieces = []
-        if near.pt.shape[0]:
-            kind, terms = cloth.point_triangle_distance(X, near.pt)
-            q = X[near.pt.long()]
-            weight = _point_triangle_weights(q, kind)
-            pieces.append((near.pt.long(), terms.energy, weight, torch.ones_like(terms.energy)))
-        if near.ee.shape[0]:
-            kind, terms = cloth.edge_edge_distance(X, near.ee)
-            q = X[near.ee.long()]
-            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
-            c = (torch.linalg.cross(q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]) ** 2).sum(1)
-            mollifier = torch.where(c < eps_x, (2.0 - c / eps_x) * c / eps_x, torch.ones_like(c))
-            pieces.append((near.ee.long(), terms.energy, _edge_edge_weights(q, kind), mollifier))
-        empty = X.new_zeros(0)
-        if not pieces:
-            return _Friction(
-                torch.zeros(0, 4, dtype=torch.int64, device=X.device), empty.view(0, 4), empty.view(0, 3, 3), empty
-            )
-        index = torch.cat([p[0] for p in pieces])
-        d = torch.cat([p[1] for p in pieces])
-        weight = torch.cat([p[2] for p in pieces])
-        mollifier = torch.cat([p[3] for p in pieces])
-        active = d < dhat2
-        index, d, weight, mollifier = index[active], d[active], weight[active], mollifier[active]
-        _, b1, _ = cloth.barrier(d.contiguous(), dhat2)
-        # λ = −∂(κ m b)/∂dist = −κ m b′(d) 2√d, the normal force of the contact, N
-        force = self.config.friction * (-ctx.kappa * mollifier * b1 * 2.0 * torch.sqrt(d))
-        gap = (weight[:, :, None] * X[index]).sum(1)
-        normal = gap / torch.linalg.norm(gap, dim=1, keepdim=True)
-        projector = torch.eye(3, dtype=F64, device=X.device) - normal[:, :, None] * normal[:, None, :]
-        return _Friction(index, weight, projector, force)
+        return _Friction(
+            *kernels_friction.lagged_contacts(X, near.pt, near.ee, eps_x, dhat2, ctx.kappa, self.config.friction)
+        )
 
     def _min_distances(self, X: torch.Tensor, pairs: _Pairs) -> tuple[float, float, int]:
         """Smallest garment–body and garment–garment distances among the pairs, m, and the pairs within ``d̂``."""

@@ -11,13 +11,16 @@ of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the k
 per-pair NumPy root finder, far too slow for a step).
 
 ``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-203.9 ms per frame (4.91 frames/s) on one lease of the machine, 267-280 ms on two later ones for the same code
-(465.1 ms with a dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton iteration, 609.7 ms when every Newton
-sweep also searched for contact candidates), 7 Newton iterations and 840 contacts on the last step. Phases,
-synchronised, over the timed steps: 46 % assembly (element Hessians, their batched eigen-filtering, COO indexing),
-21 % candidate searches and filtering, 15-19 % the sparse solves (about 3 ms per Newton iteration: CSR values,
-factorisation, solve), 9 % the line search, 3 % friction, 2-3 % CCD. The phase shares in ``extra`` leave out the
-warm-up step, which compiles the kernels.
+271.0 ms per frame (3.69 frames/s). H100 machines vary by about ±30 % from one to the next (203.9-280.4 ms for
+slower code on others), so changes are compared on one machine: over frames 4-13 of the walk (the same 81 Newton
+iterations) 164.9 ms per frame (20.4 ms per Newton iteration), against 237.6 ms (29.3 ms) with the hash-grid
+candidate search, the line search on the derivative kernels and the torch lagged-friction contacts (465.1 ms with a
+dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton iteration). Phases over those frames: 53 % assembly
+(element Hessians, their batched eigen-filtering, COO indexing), 20 % the sparse solves (CSR values,
+factorisation, solve), 15 % candidate searches and filtering, 8 % the line search, 3 % CCD, 1 % friction. The
+phase shares in ``extra`` leave out the warm-up step, which compiles the kernels. On this project's 2-core CPU
+(``--device cpu --reps 3``, SuperLU): 4.47 s per frame (6.63 s before the changes above), half of it in SuperLU,
+42 % in assembly, 7 % in the broad phase.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, cuDSS):
 929.6 ms per frame (1.08 frames/s; 5.10 s with block-Jacobi CG, which needed thousands of iterations per solve),
@@ -69,7 +72,16 @@ def _reference_energies() -> ClothEnergies:
             pt, ee = (t._replace(hess=cloth.project_psd(t.hess)) for t in (pt, ee))
         return pt, ee
 
-    return ClothEnergies(membrane, bending, contact)
+    def membrane_value(*args):
+        return membrane(*args).energy
+
+    def bending_value(*args):
+        return bending(*args).energy
+
+    def contact_value(*args):
+        return tuple(terms.energy for terms in contact(*args))
+
+    return ClothEnergies(membrane, bending, contact, membrane_value, bending_value, contact_value)
 
 
 @workload("cloth_step_large", "one Codim-IPC garment step: a sheet falling onto a sphere (frames/s)")
