@@ -438,11 +438,19 @@ def test_energy_values_equal_the_energies_of_the_derivative_kernels(device, dtyp
     x_rest, x, faces, hinges, rest = _deformed_sheet(3)
     xx = _dev(x.to(dtype))
     r = [_dev(t.to(dtype)) for t in rest]
-    exact = dict(rtol=1e-13 if dtype == torch.float64 else 1e-6, atol=0.0)
+
+    def same(got, want):
+        """Equal up to the rounding of one code path against another (CUDA fuses multiply-adds per kernel); in
+        float32, up to the cancellation of strains and gaps relative to the largest element energy."""
+        if dtype == torch.float64:
+            torch.testing.assert_close(got, want, rtol=1e-13, atol=0.0)
+        else:
+            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()))
+
     m = cloth.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 0.7)
-    torch.testing.assert_close(cloth.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy, **exact)
+    same(cloth.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy)
     b = cloth.bending_energy(xx, _dev(hinges), r[2], r[3], 0.3)
-    torch.testing.assert_close(cloth.bending_energy_value(xx, _dev(hinges), r[2], r[3], 0.3), b.energy, **exact)
+    same(cloth.bending_energy_value(xx, _dev(hinges), r[2], r[3], 0.3), b.energy)
     assert bool((m.energy > 0).all()) and bool((b.energy > 0).any())
     dhat, kappa = 1e-4, 1e3
     pt, ee, x, rest_x, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
@@ -452,7 +460,7 @@ def test_energy_values_equal_the_energies_of_the_derivative_kernels(device, dtyp
         full = cloth.contact_energy(*args, d, kappa)
         values = cloth.contact_energy_value(*args, d, kappa)
         for got, want in zip(values, full, strict=True):
-            torch.testing.assert_close(got, want.energy, **exact)
+            same(got, want.energy)
             beyond += int((want.energy == 0).sum())
     assert 0 < beyond < 2 * pt_pairs.shape[0]
     assert cloth.contact_energy_value(*args[:1], _dev(pt_pairs[:0]), _dev(ee_pairs[:0]), args[3][:0], dhat, 1.0)[
