@@ -41,25 +41,26 @@ _ABSOLUTE_PAD = 1.0e-12
 
 
 @wp.func
-def _down(v: wp.vec3d):
-    f = wp.vec3(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
-    pad = wp.vec3(
+def _rounding_pad(f: wp.vec3):
+    return wp.vec3(
         wp.abs(f[0]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
         wp.abs(f[1]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
         wp.abs(f[2]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
     )
-    return f - pad
+
+
+@wp.func
+def _down(v: wp.vec3d):
+    """A float32 point at or below ``v`` on every axis."""
+    f = wp.vec3(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
+    return f - _rounding_pad(f)
 
 
 @wp.func
 def _up(v: wp.vec3d):
+    """A float32 point at or above ``v`` on every axis."""
     f = wp.vec3(wp.float32(v[0]), wp.float32(v[1]), wp.float32(v[2]))
-    pad = wp.vec3(
-        wp.abs(f[0]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
-        wp.abs(f[1]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
-        wp.abs(f[2]) * _RELATIVE_PAD + _ABSOLUTE_PAD,
-    )
-    return f + pad
+    return f + _rounding_pad(f)
 
 
 @wp.kernel
