@@ -934,6 +934,17 @@ def _end_against_segment(p: Any, a: Any, b: Any, best: Any, kind: int, at_a: int
 
 
 @wp.func
+def _line_line_gram(ea0: Any, ea1: Any, eb0: Any, eb1: Any):
+    """Entries ``a, b, c, e, f`` of the 2×2 system of the lines' closest points: with ``da = ea1 − ea0``,
+    ``db = eb1 − eb0``, ``r = ea0 − eb0``: ``a = da·da``, ``b = da·db``, ``c = da·r``, ``e = db·db``, ``f = db·r``;
+    the parameters are ``s = (b f − c e) / (a e − b²)`` on ``a``, ``t = (a f − b c) / (a e − b²)`` on ``b``."""
+    da = ea1 - ea0
+    db = eb1 - eb0
+    r = ea0 - eb0
+    return wp.dot(da, da), wp.dot(da, db), wp.dot(da, r), wp.dot(db, db), wp.dot(db, r)
+
+
+@wp.func
 def _edge_edge_type(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
     """Closest features of segments ``a`` and ``b``, minimising ``‖ea0 + s da − eb0 − t db‖²`` over ``[0, 1]²``.
 
@@ -944,14 +955,7 @@ def _edge_edge_type(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
     """
     zero = type(parallel_tol)(0.0)
     one = type(parallel_tol)(1.0)
-    da = ea1 - ea0
-    db = eb1 - eb0
-    r = ea0 - eb0
-    a = wp.dot(da, da)
-    e = wp.dot(db, db)
-    b = wp.dot(da, db)
-    c = wp.dot(da, r)
-    f = wp.dot(db, r)
+    a, b, c, e, f = _line_line_gram(ea0, ea1, eb0, eb1)
     denom = a * e - b * b
     kind = -1
     if denom > parallel_tol * a * e:
@@ -960,7 +964,7 @@ def _edge_edge_type(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
         if s > zero and s < one and t > zero and t < one:
             kind = 8
     if kind < 0:
-        best = wp.dot(r, r) + a + e + one  # above any end-point distance
+        best = wp.length_sq(ea0 - eb0) + a + e + one  # above any end-point distance
         best, kind = _end_against_segment(ea0, eb0, eb1, best, kind, 0, 1, 6)
         best, kind = _end_against_segment(ea1, eb0, eb1, best, kind, 2, 3, 7)
         best, kind = _end_against_segment(eb0, ea0, ea1, best, kind, 0, 2, 4)

@@ -52,6 +52,7 @@ from kernels.cloth import (
     _corner,
     _edge_edge_type,
     _edge_edge_value,
+    _line_line_gram,
     _mollifier,
     _parallel_tol,
     _pick,
@@ -255,14 +256,7 @@ def _edge_edge_weights(ea0: wp.vec3d, ea1: wp.vec3d, eb0: wp.vec3d, eb1: wp.vec3
         w[2] = -(one - t)
         w[3] = -t
     else:
-        da = ea1 - ea0
-        db = eb1 - eb0
-        r = ea0 - eb0
-        a = wp.dot(da, da)
-        e = wp.dot(db, db)
-        b = wp.dot(da, db)
-        c = wp.dot(da, r)
-        f = wp.dot(db, r)
+        a, b, c, e, f = _line_line_gram(ea0, ea1, eb0, eb1)
         den = wp.max(a * e - b * b, wp.float64(2.2250738585072014e-308))  # the smallest normal float64
         s = (b * f - c * e) / den
         t = (a * f - b * c) / den
