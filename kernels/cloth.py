@@ -13,9 +13,9 @@ Conventions:
   kernel as one batched ``torch.linalg.eigh`` (LAPACK on CPU, cuSOLVER on CUDA). Measured, float32, 128² sheet
   (32 258 faces, 48 133 hinges) on an H100: membrane 0.47 ms, +2.9 ms to project; bending 0.50 ms, +5.1 ms
   to project. On this project's 2-core CPU (7 938 faces, 11 781 hinges): membrane 1.8 ms, +62 ms; bending
-  9.6 ms, +114 ms. A per-thread Jacobi eigensolver in Warp would remove the GPU projection cost but runs on
-  one CPU thread, where LAPACK's batched solver is faster; the solver may also skip projection where the
-  Hessian is known PSD (barrier pairs far from contact have zero Hessians).
+  9.6 ms, +114 ms. A per-thread Jacobi eigensolver in Warp was measured and is slower on both devices
+  (:mod:`kernels.assembly` gives the figures); the solver skips projection where the Hessian is known PSD (barrier
+  pairs far from contact have zero Hessians).
 * Squared distances are what IPC differentiates: ``d`` below is always a squared distance, ``d̂²`` the squared
   activation distance.
 * Kernels are generic over the scalar type: ``x`` in float32 runs float32 kernels (the default, for GPU

@@ -220,33 +220,56 @@ def test_bad_input_raises_clear_errors(device):
         solver.step(ClothState(state.x[:-1], state.v[:-1]), state, control, 0.04)
 
 
-@pytest.mark.skipif(not cudss.available(), reason="needs cuDSS and a CUDA device")
-def test_cudss_pattern_grows_within_a_step_and_solves_exactly(device):
-    """A matrix whose blocks are a subset of the step's pattern so far reuses its analysis; a new block (a new
-    self-contact) grows it once; kinematic blocks (index n) never reach the solve."""
-    from physavatar.cloth import _dense_solve, _GrowingPattern
+def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
+    """The Newton matrices keep the garment's pattern; a self-contact joining two vertices for the first time grows it
+    once, and it stays for the next step (cuDSS analyses it once). New free vertices restart it. Every matrix is the
+    dense sum of its blocks, with the kinematic vertices' blocks on the right-hand side."""
+    from kernels.reference.assembly import newton_matrix
+    from physavatar.cloth import _Element, _NewtonMatrices
 
-    if device != "cuda":
-        pytest.skip("cuDSS runs on CUDA")
-    n = 6
+    _, faces = grid_sheet(3, 3, 0.1)  # 9 vertices
+    torch_device = backend.torch_device()
+    faces = faces.to(torch_device, torch.int32)
     g = torch.Generator().manual_seed(3)
 
-    def system(pairs):
-        rows = torch.tensor([i for i in range(n + 1)] + [a for a, b in pairs] + [b for a, b in pairs])
-        cols = torch.tensor([i for i in range(n + 1)] + [b for a, b in pairs] + [a for a, b in pairs])
-        off = 0.1 * torch.randn(len(pairs), 3, 3, generator=g, dtype=torch.float64)
-        diag = 10.0 * torch.eye(3, dtype=torch.float64).expand(n + 1, 3, 3)
-        blocks = torch.cat([diag, off, off.transpose(1, 2)])
-        rhs = torch.randn(3 * n, generator=g, dtype=torch.float64)
-        return [t.cuda() for t in (rows, cols, blocks, rhs)]
+    def spd(count: int, size: int) -> torch.Tensor:
+        a = torch.randn(count, size, size, generator=g, dtype=F64)
+        return (a @ a.transpose(1, 2) + size * torch.eye(size, dtype=F64)).to(torch_device)
 
-    solve = _GrowingPattern(torch.device("cuda"))
-    chain = [(i, i + 1) for i in range(n - 1)]
-    for pairs, analyses in ((chain + [(0, 4), (2, n)], 1), (chain, 1), (chain + [(1, 5)], 2), (chain, 2)):
-        rows, cols, blocks, rhs = system(pairs)
-        x = solve.solve(rows, cols, blocks, rhs, n)
-        torch.testing.assert_close(x, _dense_solve(rows, cols, blocks, rhs, n), rtol=1e-12, atol=1e-14)
-        assert solve.solver.analyses == analyses
-    solve.reset()
-    solve.solve(*system(chain), n)
-    assert solve.solver.analyses == 3
+    def dofs(kinematic: list[int]) -> torch.Tensor:
+        dof = torch.full((9,), -1, dtype=torch.int32)
+        free = [i for i in range(9) if i not in kinematic]
+        dof[free] = torch.arange(len(free), dtype=torch.int32)
+        return dof.to(torch_device)
+
+    membrane = _Element(faces, spd(faces.shape[0], 9), 0.5, "abs", None)
+    far = torch.tensor([[0, 8, 2, 6]], dtype=torch.int32, device=torch_device)  # corners no triangle joins
+    contact = _Element(far, spd(1, 12), 0.5, "clamp", torch.ones(1, dtype=F64, device=torch_device))
+    matrices = _NewtonMatrices([faces])
+    p_kin = torch.randn(9, 3, generator=g, dtype=F64).to(torch_device)
+    solver = cudss.SparseSPDSolver(torch_device) if device == "cuda" and cudss.available() else None
+    patterns = []
+    for elements, kinematic in (
+        ([membrane], [4]),
+        ([membrane, contact], [4]),  # grows
+        ([membrane, contact], [4]),  # a new step, the same free vertices: kept
+        ([membrane], [4]),
+        ([membrane, contact], [4, 5]),  # new free vertices: restarts from the garment, then grows
+    ):
+        dof = dofs(kinematic)
+        n = int((dof >= 0).sum())
+        rhs = torch.randn(n, 3, generator=g, dtype=F64).to(torch_device)
+        push = p_kin * (dof < 0)[:, None]
+        matrix, out = matrices.assemble(elements, rhs, dof, push, None)
+        expected, pushed = newton_matrix(n, [(e.index, e.hess, e.scale) for e in elements], dof, push)
+        torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
+        patterns.append(matrix.pattern)
+        if solver is not None:
+            assert solver.factor(matrix.pattern.crow, matrix.pattern.col, matrix.values)
+            x = solver.solve(out.reshape(-1))
+            torch.testing.assert_close(expected @ x, out.reshape(-1), rtol=1e-10, atol=1e-10)
+    assert patterns[0] is not patterns[1] and patterns[1] is patterns[2] is patterns[3]
+    assert patterns[4] is not patterns[3] and patterns[4].n == 7
+    if solver is not None:
+        assert solver.analyses == 3

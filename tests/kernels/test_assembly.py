@@ -1,0 +1,120 @@
+"""Block-sparse assembly of element Hessians against the dense torch reference."""
+
+import pytest
+import torch
+
+from kernels import assembly, cudss
+from kernels.reference import assembly as reference
+
+F64 = torch.float64
+
+
+def _matrices(g: torch.Generator, count: int, size: int) -> torch.Tensor:
+    """Random matrices, not symmetric: a transposed block would show."""
+    return torch.randn(count, size, size, generator=g, dtype=F64)
+
+
+def _problem(device, seed: int = 0, vertices: int = 40, kinematic: int = 8):
+    """Random triangles and quads over vertices of which some are kinematic, with random Hessians."""
+    g = torch.Generator().manual_seed(seed)
+    order = torch.randperm(vertices, generator=g)
+    dof = torch.full((vertices,), -1, dtype=torch.int32)
+    dof[order[kinematic:]] = torch.arange(vertices - kinematic, dtype=torch.int32)
+    elements = []
+    for k, count in ((3, 30), (4, 25)):
+        index = torch.stack([torch.randperm(vertices, generator=g)[:k] for _ in range(count)]).to(torch.int32)
+        elements.append([index, _matrices(g, count, 3 * k)])
+    p_kin = torch.randn(vertices, 3, generator=g, dtype=F64)
+    to = lambda t: t.to(device).contiguous()  # noqa: E731
+    return to(dof), to(p_kin), [[to(i), to(h)] for i, h in elements], vertices - kinematic
+
+
+def _assemble(pattern, elements, dof, p_kin, scale=0.5):
+    values = torch.zeros(pattern.col.numel(), dtype=F64, device=dof.device)
+    rhs = torch.zeros(pattern.n, 3, dtype=F64, device=dof.device)
+    missing = torch.zeros(1, dtype=torch.int32, device=dof.device)
+    for index, hess in elements:
+        assembly.scatter_hessians(pattern, values, rhs, missing, index, hess, dof, p_kin, scale)
+    return values, rhs, int(missing)
+
+
+def _dense(pattern, values) -> torch.Tensor:
+    """The dense matrix of CSR ``values`` on ``pattern``."""
+    size = 3 * pattern.n
+    crow = pattern.crow.long()
+    rows = torch.repeat_interleave(torch.arange(size, device=crow.device), crow[1:] - crow[:-1])
+    dense = torch.zeros(size, size, dtype=values.dtype, device=values.device)
+    dense[rows, pattern.col.long()] = values
+    return dense
+
+
+def test_scatter_matches_the_dense_reference(device):
+    dof, p_kin, elements, n = _problem(device)
+    keys = torch.cat([assembly.block_keys(index, dof, n) for index, _ in elements])
+    pattern = assembly.block_pattern(keys, n)
+    values, rhs, missing = _assemble(pattern, elements, dof, p_kin)
+    expected, expected_rhs = reference.newton_matrix(n, [(index, hess, 0.5) for index, hess in elements], dof, p_kin)
+    assert missing == 0
+    torch.testing.assert_close(_dense(pattern, values), expected, rtol=0, atol=1e-14 * expected.abs().max())
+    torch.testing.assert_close(rhs, expected_rhs, rtol=0, atol=1e-14 * expected_rhs.abs().max())
+
+
+def test_missing_blocks_are_counted_and_the_rest_added(device):
+    dof, p_kin, elements, n = _problem(device, seed=2)
+    (tri_index, tri_hess), (quad_index, quad_hess) = elements
+    pattern = assembly.block_pattern(assembly.block_keys(tri_index, dof, n), n)  # the quads' blocks partly absent
+    known = set(pattern_keys(pattern).tolist())
+    quad_keys = assembly.block_keys(quad_index, dof, n).tolist()
+    absent = sum(key not in known for key in quad_keys)
+    assert absent > 0
+    values, _, missing = _assemble(pattern, elements, dof, p_kin)
+    assert missing == absent
+    grown = assembly.block_pattern(assembly.block_keys(quad_index, dof, n), n)
+    full, _, _ = _assemble(
+        assembly.block_pattern(torch.cat([pattern_keys(pattern), pattern_keys(grown)]), n), elements, dof, p_kin
+    )
+    dense = _dense(pattern, values)
+    present = _dense(pattern, torch.ones_like(values)) != 0
+    expected, _ = reference.newton_matrix(n, [(i, h, 0.5) for i, h in elements], dof, p_kin)
+    torch.testing.assert_close(dense[present], expected[present], rtol=0, atol=1e-12 * expected.abs().max())
+    assert full.numel() > values.numel()
+
+
+def pattern_keys(pattern: assembly.BlockPattern) -> torch.Tensor:
+    """Keys ``row · n + col`` of the pattern's blocks."""
+    counts = (pattern.block_start[1:] - pattern.block_start[:-1]).long()
+    rows = torch.repeat_interleave(torch.arange(pattern.n, device=counts.device), counts)
+    return rows * pattern.n + pattern.block_col.long()
+
+
+def test_block_pattern_layout_matches_cudss_and_marks_the_diagonal(device):
+    g = torch.Generator().manual_seed(4)
+    n = 12
+    keys = torch.randint(0, n * n, (40,), generator=g).to(device)
+    pattern = assembly.block_pattern(keys, n)
+    unique = torch.unique(torch.cat([keys, torch.arange(n, device=device) * (n + 1)]))
+    crow, col, _ = cudss.block_pattern_csr(unique // n, unique % n, n)
+    assert torch.equal(pattern.crow.long(), crow) and torch.equal(pattern.col.long(), col)
+    values = torch.zeros(col.numel(), dtype=F64, device=device)
+    values[pattern.diagonal.reshape(-1)] = torch.arange(1.0, 9 * n + 1, dtype=F64, device=device)
+    dense = _dense(pattern, values)
+    blocks = torch.stack([dense[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(n)])
+    assert torch.equal(blocks.reshape(-1), torch.arange(1.0, 9 * n + 1, dtype=F64, device=device))
+    assert float(dense.abs().sum()) == float(blocks.abs().sum())
+
+
+def test_bad_input_names_the_problem(device):
+    dof, p_kin, elements, n = _problem(device)
+    index, hess = elements[0]
+    pattern = assembly.block_pattern(assembly.block_keys(index, dof, n), n)
+    values = torch.zeros(pattern.col.numel(), dtype=F64, device=device)
+    rhs = torch.zeros(n, 3, dtype=F64, device=device)
+    missing = torch.zeros(1, dtype=torch.int32, device=device)
+    with pytest.raises(ValueError, match=r"hess \[N, 3k, 3k\]"):
+        assembly.scatter_hessians(pattern, values, rhs, missing, index, hess[:, :6, :6], dof, p_kin)
+    with pytest.raises(ValueError, match="float64"):
+        assembly.scatter_hessians(pattern, values, rhs, missing, index, hess.float(), dof, p_kin)
+    with pytest.raises(ValueError, match="rhs"):
+        assembly.scatter_hessians(pattern, values, rhs[1:], missing, index, hess, dof, p_kin)
+    with pytest.raises(ValueError, match="block keys"):
+        assembly.block_pattern(torch.tensor([n * n], device=device), n)
