@@ -11,21 +11,20 @@ of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the k
 per-pair NumPy root finder, far too slow for a step).
 
 ``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-271.0 ms per frame (3.69 frames/s). H100 machines vary by about ±30 % from one to the next (203.9-280.4 ms for
-slower code on others), so changes are compared on one machine: over frames 4-13 of the walk (the same 81 Newton
-iterations) 164.9 ms per frame (20.4 ms per Newton iteration), against 237.6 ms (29.3 ms) with the hash-grid
-candidate search, the line search on the derivative kernels and the torch lagged-friction contacts (465.1 ms with a
-dense cuSOLVER Cholesky of the 11k-DOF matrix per Newton iteration). Phases over those frames: 53 % assembly
-(element Hessians, their batched eigen-filtering, COO indexing), 20 % the sparse solves (CSR values,
-factorisation, solve), 15 % candidate searches and filtering, 8 % the line search, 3 % CCD, 1 % friction. The
-phase shares in ``extra`` leave out the warm-up step, which compiles the kernels. On this project's 2-core CPU
-(``--device cpu --reps 3``, SuperLU): 4.47 s per frame (6.63 s before the changes above), half of it in SuperLU,
-42 % in assembly, 7 % in the broad phase.
+202.8 ms per frame (4.93 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared
+on one machine, each code version in its own process: over frames 4-13 of the walk (the same 81 Newton
+iterations) 109.3 ms per frame (13.5 ms per Newton iteration) with the Newton matrices scattered by
+:mod:`kernels.assembly` onto a block pattern that outlives the step, against 149.7 ms (18.5 ms) with the COO
+assembly in torch. Phases over those frames: 52 % assembly (element Hessians, their batched eigen-filtering, the
+scatter), 20 % the sparse solves (factorisation and solve), 18 % candidate searches and filtering, 8 % the line
+search, 3 % CCD, 1 % friction. The phase shares in ``extra`` leave out the warm-up step, which compiles the
+kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.55 s per frame (4.47 s with the COO
+assembly), 51 % in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
 
-``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 2``; 50,176 vertices, 99,458 faces, cuDSS):
-929.6 ms per frame (1.08 frames/s; 5.10 s with block-Jacobi CG, which needed thousands of iterations per solve),
-3.88x the reference; 10 Newton iterations and 3114 contacts on the last step, whose time went 47 % to assembly,
-21 % to the solves, 17 % to the broad phase and 13 % to the line search.
+``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
+824.3 ms per frame (1.21 frames/s; 929.6 ms with the COO assembly; 5.10 s with block-Jacobi CG, which needed
+thousands of iterations per solve), 5.7x the reference; 50 Newton iterations and 7119 contacts on the last step,
+whose time went 63 % to assembly, 24 % to the solves, 9 % to the broad phase and 4 % to the line search.
 """
 
 from __future__ import annotations
