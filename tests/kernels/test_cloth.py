@@ -440,12 +440,14 @@ def test_energy_values_equal_the_energies_of_the_derivative_kernels(device, dtyp
     r = [_dev(t.to(dtype)) for t in rest]
 
     def same(got, want):
-        """Equal up to the rounding of one code path against another (CUDA fuses multiply-adds per kernel); in
-        float32, up to the cancellation of strains and gaps relative to the largest element energy."""
+        """Equal up to the rounding of one code path against another (CUDA fuses multiply-adds per kernel). In
+        float32, strains and gaps of about 1e-2 cancel two of its seven digits before they are squared, so the two
+        paths agree to about 1e-5 (2.2e-5 seen on an H100): compared at 1e-4, with a floor of 1e-5 of the largest
+        element energy."""
         if dtype == torch.float64:
             torch.testing.assert_close(got, want, rtol=1e-13, atol=0.0)
         else:
-            torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6 * float(want.abs().max()))
+            torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5 * float(want.abs().max()))
 
     m = cloth.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 0.7)
     same(cloth.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy)
