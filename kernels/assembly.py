@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 import warp as wp
 
-from kernels import backend
+from kernels import backend, cudss
 
 wp.set_module_options({"enable_backward": False})
 
@@ -85,21 +85,10 @@ def block_pattern(keys: torch.Tensor, n: int) -> BlockPattern:
     if keys.numel() and (int(keys[0]) < 0 or int(keys[-1]) >= n * n):
         raise ValueError(f"block keys must lie in [0, {n * n}) for {n} block rows")
     rows, cols = keys // n, keys % n
-    count = torch.bincount(rows, minlength=n)
+    crow, col, position = cudss.block_pattern_csr(rows, cols, n)  # the scalar layout the kernel writes into
     start = torch.zeros(n + 1, dtype=torch.int64, device=device)
-    start[1:] = torch.cumsum(count, 0)
-    # scalar row 3i + a holds, for each block of block row i in column order, the columns 3 col + b (b = 0, 1, 2)
-    a = torch.arange(3, device=device)
-    crow = torch.empty(3 * n + 1, dtype=torch.int64, device=device)
-    crow[:-1] = (9 * start[:-1, None] + 3 * a[None, :] * count[:, None]).reshape(-1)
-    crow[-1] = 9 * keys.numel()
-    within = torch.arange(keys.numel(), device=device) - start[rows]
-    position = 9 * start[rows, None, None] + 3 * a[None, :, None] * count[rows, None, None] + 3 * within[:, None, None]
-    position = position + a[None, None, :]
-    col = torch.empty(9 * keys.numel(), dtype=torch.int64, device=device)
-    col[position.reshape(-1)] = (3 * cols[:, None, None] + a[None, None, :]).expand(-1, 3, 3).reshape(-1)
-    on_diagonal = rows == cols
-    diagonal = position[on_diagonal]  # blocks (i, i) in order of i
+    start[1:] = torch.cumsum(torch.bincount(rows, minlength=n), 0)
+    diagonal = position[rows == cols]  # blocks (i, i) in order of i
     return BlockPattern(
         n,
         start.to(torch.int32),
