@@ -53,6 +53,12 @@ class BlockPattern(NamedTuple):
     col: torch.Tensor
     diagonal: torch.Tensor
 
+    def keys(self) -> torch.Tensor:
+        """``[K]`` int64 keys ``row · n + col`` of the blocks, sorted (what :func:`block_pattern` takes)."""
+        counts = (self.block_start[1:] - self.block_start[:-1]).long()
+        rows = torch.repeat_interleave(torch.arange(self.n, device=counts.device), counts)
+        return rows * self.n + self.block_col.long()
+
 
 def block_keys(index: torch.Tensor, dof: torch.Tensor, n: int) -> torch.Tensor:
     """The blocks that elements over ``index [N, k]`` add between free vertices, as keys ``row · n + col``.

@@ -1077,20 +1077,13 @@ class _NewtonMatrices:
     def __init__(self, elastic: list[torch.Tensor]):
         self.elastic = elastic
         self.pattern: assembly.BlockPattern | None = None
-        self.keys: torch.Tensor | None = None
         self.dof: torch.Tensor | None = None
         self.elastic_blocks = 0
 
     def _reset(self, dof: torch.Tensor, n: int) -> None:
         keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
-        self._build(keys, n)
-        self.elastic_blocks = self.keys.numel()
-
-    def _build(self, keys: torch.Tensor, n: int) -> None:
         self.pattern = assembly.block_pattern(keys, n)
-        counts = (self.pattern.block_start[1:] - self.pattern.block_start[:-1]).long()
-        rows = torch.repeat_interleave(torch.arange(n, device=keys.device), counts)
-        self.keys = rows * n + self.pattern.block_col.long()
+        self.elastic_blocks = self.pattern.block_col.numel()
 
     def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
         """``(_Matrix, rhs [n, 3])``: ``Σ`` scaled, filtered element Hessians plus ``diag(mass)`` (when given), and
@@ -1098,7 +1091,7 @@ class _NewtonMatrices:
         n = rhs.shape[0]
         if dof is not self.dof:  # a new step: keep the pattern if the free vertices are the same and it has not doubled
             same = self.dof is not None and self.dof.shape == dof.shape and bool(torch.equal(self.dof, dof))
-            if not same or self.keys.numel() > 2 * self.elastic_blocks:
+            if not same or self.pattern.block_col.numel() > 2 * self.elastic_blocks:
                 self._reset(dof, n)
             self.dof = dof
         active = _filtered(elements)
@@ -1114,19 +1107,19 @@ class _NewtonMatrices:
                 assembly.scatter_hessians(self.pattern, values, out, missing, index, hess, dof, p_kin, scale)
             if int(missing) == 0:
                 return _Matrix(self.pattern, values), out
-            grown = [self.keys] + [assembly.block_keys(element.index, dof, n) for element in elements]
-            self._build(torch.cat(grown), n)
+            grown = [self.pattern.keys()] + [assembly.block_keys(element.index, dof, n) for element in elements]
+            self.pattern = assembly.block_pattern(torch.cat(grown), n)
 
 
 def _filtered(elements: list[_Element]) -> list[_Element]:
     """``elements`` less their inactive members (one read from the device), with their Hessians PSD-filtered."""
-    gated = [element.gate != 0.0 for element in elements if element.gate is not None]
-    counts = iter(torch.stack([active.sum() for active in gated]).tolist() if gated else [])
-    gated = iter(gated)
+    masks = [element.gate != 0.0 for element in elements if element.gate is not None]
+    counts = iter(torch.stack([mask.sum() for mask in masks]).tolist() if masks else [])
+    masks = iter(masks)
     out = []
     for element in elements:
         if element.gate is not None:
-            active = torch.nonzero_static(next(gated), size=next(counts)).squeeze(1)
+            active = torch.nonzero_static(next(masks), size=next(counts)).squeeze(1)
             element = element._replace(index=element.index[active], hess=element.hess[active], gate=None)
         if element.projection != "none" and element.index.shape[0]:
             hess = cloth.project_psd(element.hess, absolute=element.projection == "abs")

@@ -63,7 +63,7 @@ def test_missing_blocks_are_counted_and_the_rest_added(device):
     dof, p_kin, elements, n = _problem(device, seed=2)
     (tri_index, tri_hess), (quad_index, quad_hess) = elements
     pattern = assembly.block_pattern(assembly.block_keys(tri_index, dof, n), n)  # the quads' blocks partly absent
-    known = set(pattern_keys(pattern).tolist())
+    known = set(pattern.keys().tolist())
     quad_keys = assembly.block_keys(quad_index, dof, n).tolist()
     absent = sum(key not in known for key in quad_keys)
     assert absent > 0
@@ -71,20 +71,13 @@ def test_missing_blocks_are_counted_and_the_rest_added(device):
     assert missing == absent
     grown = assembly.block_pattern(assembly.block_keys(quad_index, dof, n), n)
     full, _, _ = _assemble(
-        assembly.block_pattern(torch.cat([pattern_keys(pattern), pattern_keys(grown)]), n), elements, dof, p_kin
+        assembly.block_pattern(torch.cat([pattern.keys(), grown.keys()]), n), elements, dof, p_kin
     )
     dense = _dense(pattern, values)
     present = _dense(pattern, torch.ones_like(values)) != 0
     expected, _ = reference.newton_matrix(n, [(i, h, 0.5) for i, h in elements], dof, p_kin)
     torch.testing.assert_close(dense[present], expected[present], rtol=0, atol=1e-12 * expected.abs().max())
     assert full.numel() > values.numel()
-
-
-def pattern_keys(pattern: assembly.BlockPattern) -> torch.Tensor:
-    """Keys ``row · n + col`` of the pattern's blocks."""
-    counts = (pattern.block_start[1:] - pattern.block_start[:-1]).long()
-    rows = torch.repeat_interleave(torch.arange(pattern.n, device=counts.device), counts)
-    return rows * pattern.n + pattern.block_col.long()
 
 
 def test_block_pattern_holds_every_diagonal_block_and_marks_it(device):
@@ -95,7 +88,7 @@ def test_block_pattern_holds_every_diagonal_block_and_marks_it(device):
     keys = torch.randint(0, n * n, (40,), generator=g).to(device)
     pattern = assembly.block_pattern(torch.cat([keys, keys[:10]]), n)
     expected = torch.unique(torch.cat([keys, torch.arange(n, device=device) * (n + 1)]))
-    assert torch.equal(pattern_keys(pattern), expected)
+    assert torch.equal(pattern.keys(), expected)
     values = torch.zeros(pattern.col.numel(), dtype=F64, device=device)
     values[pattern.diagonal.reshape(-1)] = torch.arange(1.0, 9 * n + 1, dtype=F64, device=device)
     dense = _dense(pattern, values)
