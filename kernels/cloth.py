@@ -419,11 +419,11 @@ def _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam) -> tuple[int, list]
     lam = _per_element(lam, x, n, "lam")
     return n, [
         _vec3(x),
-        backend.to_warp(faces),
-        backend.to_warp(rest_inv, dtype=wp.types.matrix((2, 2), _scalar(x))),
-        backend.to_warp(rest_area),
-        backend.to_warp(mu),
-        backend.to_warp(lam),
+        faces,
+        (rest_inv, wp.types.matrix((2, 2), _scalar(x))),
+        rest_area,
+        mu,
+        lam,
     ]
 
 
@@ -566,13 +566,7 @@ def _hinge_rest(x_rest: torch.Tensor, hinges: torch.Tensor) -> tuple[torch.Tenso
     angle = torch.empty(hinges.shape[0], dtype=x_rest.dtype, device=x_rest.device)
     weight = torch.empty_like(angle)
     if hinges.shape[0]:
-        wp.launch(
-            _hinge_rest_kernel,
-            dim=hinges.shape[0],
-            inputs=[_vec3(x_rest), backend.to_warp(hinges)],
-            outputs=[backend.to_warp(angle), backend.to_warp(weight)],
-            device=backend.warp_device(),
-        )
+        backend.launch(_hinge_rest_kernel, hinges.shape[0], [_vec3(x_rest), hinges, angle, weight])
     return angle, weight
 
 
@@ -631,10 +625,10 @@ def _bending_inputs(x, hinges, rest_angle, rest_weight, k_bend) -> tuple[int, li
     k_bend = _per_element(k_bend, x, n, "k_bend")
     return n, [
         _vec3(x),
-        backend.to_warp(hinges),
-        backend.to_warp(rest_angle),
-        backend.to_warp(rest_weight),
-        backend.to_warp(k_bend),
+        hinges,
+        rest_angle,
+        rest_weight,
+        k_bend,
     ]
 
 
@@ -690,13 +684,7 @@ def barrier(d: torch.Tensor, dhat: float) -> tuple[torch.Tensor, torch.Tensor, t
     d = d.contiguous()
     out = [torch.empty_like(d) for _ in range(3)]
     if d.numel():
-        wp.launch(
-            _barrier_kernel,
-            dim=d.numel(),
-            inputs=[backend.to_warp(d), _scalar(d)(dhat)],
-            outputs=[backend.to_warp(t) for t in out],
-            device=backend.warp_device(),
-        )
+        backend.launch(_barrier_kernel, d.numel(), [d, _scalar(d)(dhat), *out])
     return tuple(out)
 
 
@@ -1096,13 +1084,7 @@ def point_triangle_distance(x: torch.Tensor, pairs: torch.Tensor) -> tuple[torch
     out = _allocate(x, pairs.shape[0], 4)
     kind = torch.empty(pairs.shape[0], dtype=torch.int32, device=x.device)
     if pairs.shape[0]:
-        wp.launch(
-            _point_triangle_distance_kernel,
-            dim=pairs.shape[0],
-            inputs=[_vec3(x), backend.to_warp(pairs)],
-            outputs=[backend.to_warp(kind)] + [backend.to_warp(t) for t in out],
-            device=backend.warp_device(),
-        )
+        backend.launch(_point_triangle_distance_kernel, pairs.shape[0], [_vec3(x), pairs, kind, *out])
     return kind, ElementTerms(*out)
 
 
@@ -1122,13 +1104,7 @@ def edge_edge_distance(x: torch.Tensor, pairs: torch.Tensor) -> tuple[torch.Tens
     out = _allocate(x, pairs.shape[0], 4)
     kind = torch.empty(pairs.shape[0], dtype=torch.int32, device=x.device)
     if pairs.shape[0]:
-        wp.launch(
-            _edge_edge_distance_kernel,
-            dim=pairs.shape[0],
-            inputs=[_vec3(x), backend.to_warp(pairs), _parallel_tol(x)],
-            outputs=[backend.to_warp(kind)] + [backend.to_warp(t) for t in out],
-            device=backend.warp_device(),
-        )
+        backend.launch(_edge_edge_distance_kernel, pairs.shape[0], [_vec3(x), pairs, _parallel_tol(x), kind, *out])
     return kind, ElementTerms(*out)
 
 
@@ -1341,11 +1317,11 @@ def _contact_inputs(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness) -> tuple[l
     scalar = _scalar(x)
     points = _vec3(x)
     return (
-        [points, backend.to_warp(pt_pairs), scalar(dhat), scalar(stiffness)],
+        [points, pt_pairs, scalar(dhat), scalar(stiffness)],
         [
             points,
-            backend.to_warp(ee_pairs),
-            backend.to_warp(ee_eps_x),
+            ee_pairs,
+            ee_eps_x,
             scalar(dhat),
             scalar(stiffness),
             _parallel_tol(x),
@@ -1467,22 +1443,8 @@ def _ccd(x, dx, pairs, edge_edge, min_distance, eta, max_iterations):
     toi = torch.empty(pairs.shape[0], dtype=x.dtype, device=x.device)
     if pairs.shape[0]:
         scalar = _scalar(x)
-        wp.launch(
-            _ccd_kernel,
-            dim=pairs.shape[0],
-            inputs=[
-                _vec3(x),
-                _vec3(dx.contiguous()),
-                backend.to_warp(pairs),
-                edge_edge,
-                scalar(min_distance),
-                scalar(eta),
-                max_iterations,
-                _parallel_tol(x),
-            ],
-            outputs=[backend.to_warp(toi)],
-            device=backend.warp_device(),
-        )
+        args = [_vec3(x), _vec3(dx.contiguous()), pairs, edge_edge, scalar(min_distance), scalar(eta)]
+        backend.launch(_ccd_kernel, pairs.shape[0], [*args, max_iterations, _parallel_tol(x), toi])
     return toi
 
 
@@ -1568,13 +1530,9 @@ def pair_boxes_overlap(
     dx = torch.zeros_like(x) if dx is None else _check_values(dx, x, tuple(x.shape), "dx")
     overlap = torch.empty(pairs.shape[0], dtype=torch.uint8, device=x.device)
     if pairs.shape[0]:
-        wp.launch(
-            _pair_boxes_kernel,
-            dim=pairs.shape[0],
-            inputs=[_vec3(x), _vec3(dx), backend.to_warp(pairs), split, _scalar(x)(dhat), _scalar(x)(parallel)],
-            outputs=[backend.to_warp(overlap)],
-            device=backend.warp_device(),
-        )
+        scalar = _scalar(x)
+        args = [_vec3(x), _vec3(dx), pairs, split, scalar(dhat), scalar(parallel), overlap]
+        backend.launch(_pair_boxes_kernel, pairs.shape[0], args)
     return overlap.view(torch.bool)
 
 
@@ -1626,8 +1584,9 @@ def _scalar(x: torch.Tensor):
     return wp.float64 if x.dtype == torch.float64 else wp.float32
 
 
-def _vec3(x: torch.Tensor):
-    return backend.to_warp(x, dtype=wp.vec3d if x.dtype == torch.float64 else wp.vec3f)
+def _vec3(x: torch.Tensor) -> tuple:
+    """``x [N, 3]`` as a :func:`kernels.backend.launch` argument: an array of 3-vectors."""
+    return x, wp.vec3d if x.dtype == torch.float64 else wp.vec3f
 
 
 def _parallel_tol(x: torch.Tensor):
@@ -1675,13 +1634,7 @@ def _check_dhat(dhat: float) -> None:
 
 def _launch(kernel, n: int, inputs: list, outputs: list) -> None:
     if n:
-        wp.launch(
-            kernel,
-            dim=n,
-            inputs=inputs,
-            outputs=[backend.to_warp(t) for t in outputs],
-            device=backend.warp_device(),
-        )
+        backend.launch(kernel, n, [*inputs, *outputs])
 
 
 def _allocate(x: torch.Tensor, n: int, nv: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

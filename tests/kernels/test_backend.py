@@ -1,3 +1,5 @@
+from typing import Any
+
 import pytest
 import taichi as ti
 import torch
@@ -17,6 +19,12 @@ def _add_one(x: ti.types.ndarray(dtype=ti.f32, ndim=1)):
 def _double(x: wp.array(dtype=wp.float32)):
     i = wp.tid()
     x[i] = 2.0 * x[i]
+
+
+@wp.kernel
+def _axpy(a: Any, x: wp.array(dtype=Any), y: wp.array(dtype=Any), out: wp.array(dtype=Any)):
+    i = wp.tid()
+    out[i] = a * x[i] + y[i]
 
 
 def test_taichi_and_warp_share_one_tensor(device):
@@ -56,6 +64,24 @@ def test_init_is_idempotent_and_refuses_a_switch(device):
     other = "cuda" if device == "cpu" else "cpu"
     with pytest.raises(RuntimeError, match="cannot switch"):
         backend.init(other)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_launch_takes_tensors_vector_views_and_scalars(device, dtype):
+    """One generic kernel launched on scalar arrays and on 3-vector views, in both precisions: each pattern of
+    argument types gets its own overload, which later launches reuse."""
+    g = torch.Generator().manual_seed(0)
+    x, y = (torch.randn(7, 3, generator=g, dtype=dtype).to(backend.torch_device()) for _ in range(2))
+    scalar, vec3 = (wp.float64, wp.vec3d) if dtype == torch.float64 else (wp.float32, wp.vec3f)
+    out = torch.empty_like(x)
+    for _ in range(2):
+        backend.launch(_axpy, 7, [scalar(2.0), (x, vec3), (y, vec3), (out, vec3)])
+        torch.testing.assert_close(out, 2.0 * x + y, rtol=0, atol=0)
+    flat = torch.empty(21, dtype=dtype, device=x.device)
+    backend.launch(_axpy, 21, [scalar(-1.0), x.view(-1), y.view(-1), flat])
+    torch.testing.assert_close(flat, y.view(-1) - x.view(-1), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="contiguous"):
+        backend.launch(_axpy, 7, [scalar(2.0), (x.t(), vec3), (y, vec3), (out, vec3)])
 
 
 def test_unknown_device_names_the_valid_ones():
