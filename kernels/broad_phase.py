@@ -7,11 +7,12 @@ union of its vertices' boxes, each vertex's box given as ``[lo, hi]`` (for a swe
 
 :class:`BoxTree` builds Warp's BVH (``wp.Bvh``: LBVH on CUDA, SAH on the CPU) over the primitive boxes, rounded
 outwards to float32, and :meth:`BoxTree.overlaps` walks it once per query primitive, twice: a count, then, at the
-prefix-summed offsets, the pairs. The exact test is in float64 (the boxes of 1 mm gaps on 1 m coordinates), so the
-result is exactly the pairs whose float64 boxes overlap, in a deterministic order (by query, then by the tree's
-traversal order). Pairs that share a vertex, pairs whose vertices are all excluded (kinematic: nothing can move
-them) and, within one set, the mirrored half are dropped in the kernel. Each query costs one read from the device
-(the number of pairs, to allocate them).
+prefix-summed offsets, the pairs (:func:`find_overlaps` runs several queries' counts, then their fills). The exact
+test is in float64 (the boxes of 1 mm gaps on 1 m coordinates), so the result is exactly the pairs whose float64
+boxes overlap, in a deterministic order (by query, then by the tree's traversal order). Pairs that share a vertex,
+pairs whose vertices are all excluded (kinematic: nothing can move them) and, within one set, the mirrored half are
+dropped in the kernel. Each :func:`find_overlaps` call costs one read from the device (the numbers of pairs, to
+allocate them).
 
 Warp, not Taichi: Warp has a BVH that builds on both devices; on the CPU it runs on one thread.
 
@@ -25,6 +26,10 @@ against 283 ms.
 # Warp needs int(0)/bool(False) to declare variables that change inside dynamic loops.
 # ruff: noqa: UP018
 
+from __future__ import annotations
+
+from typing import NamedTuple
+
 import torch
 import warp as wp
 
@@ -32,7 +37,7 @@ from kernels import backend
 
 wp.set_module_options({"enable_backward": False})
 
-__all__ = ["BoxTree"]
+__all__ = ["BoxTree", "OverlapQuery", "find_overlaps"]
 
 # float64 → float32 rounding is at most half an ulp (2⁻²⁴ relative); the BVH's boxes are grown by more than that
 # so that they contain the float64 boxes, and the exact test then runs on those.
@@ -162,7 +167,6 @@ class BoxTree:
         _check_boxes(lo, hi)
         _check_prims(prims, "prims")
         self.lo, self.hi, self.prims = lo, hi, prims
-        self._lo, self._hi = backend.to_warp(lo, dtype=wp.vec3d), backend.to_warp(hi, dtype=wp.vec3d)
         self._bvh = None
         if prims.shape[0]:
             device = backend.warp_device()
@@ -171,7 +175,7 @@ class BoxTree:
             wp.launch(
                 _bounds_kernel,
                 dim=prims.shape[0],
-                inputs=[self._lo, self._hi, backend.to_warp(prims)],
+                inputs=[backend.warp_arg(lo, wp.vec3d), backend.warp_arg(hi, wp.vec3d), backend.warp_arg(prims)],
                 outputs=[self._lowers, self._uppers],
                 device=device,
             )
@@ -199,6 +203,11 @@ class BoxTree:
         Returns:
             ``[N, kq + k]`` int32 vertex indices, query's then tree's (or the reverse), ordered by query.
         """
+        return find_overlaps([OverlapQuery(self, query, grow, excluded, same, tree_first)])[0]
+
+    def _count(self, request: OverlapQuery) -> _Counted:
+        """Checks ``request`` and launches its counting walk."""
+        query, grow, excluded, same = request.query, request.grow, request.excluded, request.same
         _check_prims(query, "query")
         if excluded.dtype != torch.bool or tuple(excluded.shape) != (self.lo.shape[0],):
             raise ValueError(
@@ -210,44 +219,58 @@ class BoxTree:
             raise ValueError("same=True needs the tree's own primitives as the queries")
         width = query.shape[1] + self.prims.shape[1]
         device = self.lo.device
+        empty = torch.zeros(0, width, dtype=torch.int32, device=device)
         if self._bvh is None or query.shape[0] == 0:
-            return torch.zeros(0, width, dtype=torch.int32, device=device)
+            return _Counted([], empty, None, None)
         n = query.shape[0]
         count = torch.empty(n, dtype=torch.int32, device=device)
         offset = torch.zeros(n, dtype=torch.int64, device=device)
         flags = excluded.contiguous().view(torch.uint8)
-        args = [
-            self._bvh.id,
-            self._lo,
-            self._hi,
-            backend.to_warp(self.prims),
-            backend.to_warp(query),
-            wp.float64(grow),
-            backend.to_warp(flags),
-            int(same),
-            int(tree_first),
-        ]
-        wd = backend.warp_device()
-        pairs = torch.empty(0, width, dtype=torch.int32, device=device)
-        wp.launch(
-            _overlaps_kernel,
-            dim=n,
-            inputs=[*args, 0, backend.to_warp(offset)],
-            outputs=[backend.to_warp(count), backend.to_warp(pairs)],
-            device=wd,
-        )
+        args = [self._bvh.id, (self.lo, wp.vec3d), (self.hi, wp.vec3d), self.prims, query, wp.float64(grow), flags]
+        args += [int(same), int(request.tree_first)]
+        backend.launch(_overlaps_kernel, n, [*args, 0, offset, count, empty])
         torch.cumsum(count[:-1], 0, out=offset[1:])
-        total = int(offset[-1] + count[-1])  # the one read from the device
-        pairs = torch.empty(total, width, dtype=torch.int32, device=device)
-        if total:
-            wp.launch(
-                _overlaps_kernel,
-                dim=n,
-                inputs=[*args, 1, backend.to_warp(offset)],
-                outputs=[backend.to_warp(count), backend.to_warp(pairs)],
-                device=wd,
-            )
-        return pairs
+        return _Counted(args, empty, count, offset)
+
+
+class OverlapQuery(NamedTuple):
+    """The arguments of one :meth:`BoxTree.overlaps` call, for :func:`find_overlaps`."""
+
+    tree: BoxTree
+    query: torch.Tensor
+    grow: float
+    excluded: torch.Tensor
+    same: bool = False
+    tree_first: bool = False
+
+
+class _Counted(NamedTuple):
+    args: list  # the walk's arguments up to the pass flag; empty where nothing can overlap
+    empty: torch.Tensor  # [0, width] int32
+    count: torch.Tensor | None  # [Q] pairs per query primitive
+    offset: torch.Tensor | None  # [Q] int64 exclusive prefix sum of count
+
+
+def find_overlaps(requests: list[OverlapQuery]) -> list[torch.Tensor]:
+    """The pairs of each request, as :meth:`BoxTree.overlaps` finds them, with one read from the device for all.
+
+    The counting walks of every request run first, then the totals are read back together (a read waits for the
+    device to finish its queue, so one per request cost a search of five requests four extra stalls), then the
+    filling walks run.
+    """
+    counted = [request.tree._count(request) for request in requests]
+    sizes = [c.offset[-1] + c.count[-1] for c in counted if c.count is not None]
+    totals = iter(torch.stack(sizes).tolist() if sizes else [])
+    found = []
+    for c in counted:
+        total = next(totals) if c.count is not None else 0
+        if total == 0:
+            found.append(c.empty)
+            continue
+        pairs = torch.empty(total, c.empty.shape[1], dtype=torch.int32, device=c.empty.device)
+        backend.launch(_overlaps_kernel, c.count.shape[0], [*c.args, 1, c.offset, c.count, pairs])
+        found.append(pairs)
+    return found
 
 
 def _check_boxes(lo: torch.Tensor, hi: torch.Tensor) -> None:

@@ -63,7 +63,7 @@ import torch
 
 from kernels import assembly, backend, cloth, cudss
 from kernels import friction as kernels_friction
-from kernels.broad_phase import BoxTree
+from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
 from kernels.raycast import MeshBVH
 
 __all__ = [
@@ -808,15 +808,18 @@ class SolverCloth:
         points = BoxTree(lo, hi, self._points)
         triangles = BoxTree(lo, hi, self.faces)
         edges = BoxTree(lo, hi, self._edges)
-        pt = [  # garment vertices against body triangles, body vertices against garment triangles
-            points.overlaps(self._body_faces, dhat, kinematic, tree_first=True),
-            triangles.overlaps(self._body_points, dhat, kinematic),
-        ]
-        ee = [edges.overlaps(self._body_edges, dhat, kinematic, tree_first=True)]
-        pt_body, ee_body = pt[0].shape[0] + pt[1].shape[0], ee[0].shape[0]
-        pt.append(triangles.overlaps(self._points, dhat, kinematic))
-        ee.append(edges.overlaps(self._edges, dhat, kinematic, same=True))
-        return _Pairs(torch.cat(pt), torch.cat(ee), pt_body, ee_body)
+        pt_vb, pt_bv, ee_b, pt_self, ee_self = find_overlaps(
+            [  # garment vertices against body triangles, body vertices against garment triangles, body edges
+                OverlapQuery(points, self._body_faces, dhat, kinematic, tree_first=True),
+                OverlapQuery(triangles, self._body_points, dhat, kinematic),
+                OverlapQuery(edges, self._body_edges, dhat, kinematic, tree_first=True),
+                # then the garment against itself
+                OverlapQuery(triangles, self._points, dhat, kinematic),
+                OverlapQuery(edges, self._edges, dhat, kinematic, same=True),
+            ]
+        )
+        pt_body, ee_body = pt_vb.shape[0] + pt_bv.shape[0], ee_b.shape[0]
+        return _Pairs(torch.cat([pt_vb, pt_bv, pt_self]), torch.cat([ee_b, ee_self]), pt_body, ee_body)
 
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""

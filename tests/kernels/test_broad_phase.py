@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from kernels.broad_phase import BoxTree
+from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
 
 F64 = torch.float64
 
@@ -66,6 +66,26 @@ def test_overlaps_match_brute_force(device, query_kind, tree_kind, same, tree_fi
         firsts = got[:, column].long().cpu()
         if query.shape[1] == 1:
             assert bool((firsts[1:] >= firsts[:-1]).all())
+
+
+def test_find_overlaps_gives_each_request_its_own_pairs(device):
+    """Several requests over two trees, one of them empty, answered together: the same rows in the same order as
+    one call each."""
+    lo, hi, triangles, edges, points, excluded = _boxes(device)
+    triangle_tree, edge_tree = BoxTree(lo, hi, triangles), BoxTree(lo, hi, edges)
+    requests = [
+        OverlapQuery(triangle_tree, points, 1e-3, excluded),
+        OverlapQuery(edge_tree, edges, 1e-3, excluded, same=True),
+        OverlapQuery(triangle_tree, points[:0], 1e-3, excluded),
+        OverlapQuery(edge_tree, edges, 0.0, excluded, tree_first=True),
+    ]
+    got = find_overlaps(requests)
+    assert len(got) == len(requests) and got[2].shape == (0, 4)
+    for pairs, request in zip(got, requests, strict=True):
+        tree, query, grow, excluded, same, tree_first = request
+        assert torch.equal(pairs, tree.overlaps(query, grow, excluded, same=same, tree_first=tree_first))
+    assert min(got[0].shape[0], got[1].shape[0], got[3].shape[0]) > 100
+    assert find_overlaps([]) == []
 
 
 def test_overlaps_are_deterministic_and_exact_at_touching_boxes(device):
