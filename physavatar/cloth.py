@@ -554,13 +554,14 @@ class SolverCloth:
             p = p_kin.clone()
             p[free] = p_free.view(-1, 3)
             step = p_free.abs().max() if p_free.numel() else p_free.new_zeros(())
-            reached, step = torch.stack([(p_kin == 0).all().to(step.dtype), step]).tolist()  # one device read
+            flags = torch.stack([(p_kin == 0).all(), self._covers(cover, X, p)]).to(step.dtype)
+            reached, covered, step = torch.cat([flags, step[None]]).tolist()  # one device read
             reached = reached == 1.0
             if reached and step / dt < cfg.newton_tolerance:
                 converged = True
                 break
             start = clock()
-            if not self._covers(cover, X, p):
+            if covered != 1.0:
                 cover = self._cover(X, X + p, ctx, self.candidate_margin)
                 searches += 1
             pairs = self._swept(X, p, cover)
@@ -572,7 +573,7 @@ class SolverCloth:
             if reached:
                 while alpha > 1e-12:
                     trial = X + alpha * p
-                    trial_energy = self._energy(trial, self._near(trial, pairs, ctx), ctx)
+                    trial_energy = self._energy(trial, pairs, ctx)  # zero beyond d̂: no need to filter
                     if trial_energy <= energy:
                         break
                     alpha *= 0.5
@@ -779,11 +780,12 @@ class SolverCloth:
         return _Cover(lo, hi, self._box_pairs(lo, hi, ctx))
 
     @staticmethod
-    def _covers(cover: _Cover, X: torch.Tensor, p: torch.Tensor) -> bool:
-        """Whether the sweep ``X → X + p`` keeps every vertex inside its box of ``cover``."""
+    def _covers(cover: _Cover, X: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+        """Whether the sweep ``X → X + p`` keeps every vertex inside its box of ``cover`` (0-d bool, on the device:
+        the caller reads it with the step's other flags)."""
         end = X + p
         inside = (torch.minimum(X, end) >= cover.lo) & (torch.maximum(X, end) <= cover.hi)
-        return bool(inside.all())
+        return inside.all()
 
     def _swept(self, X: torch.Tensor, p: torch.Tensor, cover: _Cover) -> _Pairs:
         """The candidates of ``cover`` whose boxes, swept over ``X → X + p`` and grown by ``d̂``, overlap, less
@@ -911,7 +913,8 @@ class SolverCloth:
 
     def _energy(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext) -> torch.Tensor:
         """The incremental potential ``E(X)`` of :meth:`_potential` alone (0-d), from the energy-only kernels: what
-        the line search compares, without the element derivatives."""
+        the line search compares, without the element derivatives. ``near`` may be any superset of the pairs within
+        ``d̂`` (the others add exact zeros): the line search passes the sweep's candidates unfiltered."""
         cfg, dt2 = self.config, ctx.dt * ctx.dt
         v = self.vertex_count
         x = X[:v].contiguous()
