@@ -38,6 +38,7 @@ wp.set_module_options({"enable_backward": False})
 __all__ = [
     "EDGE_EDGE_TYPES",
     "POINT_TRIANGLE_TYPES",
+    "STRESS_FILTERS",
     "ClothRest",
     "ElementTerms",
     "barrier",
@@ -64,6 +65,10 @@ POINT_TRIANGLE_TYPES = ("P_T0", "P_T1", "P_T2", "P_E0", "P_E1", "P_E2", "P_T")
 
 EDGE_EDGE_TYPES = ("EA0_EB0", "EA0_EB1", "EA1_EB0", "EA1_EB1", "EA_EB0", "EA_EB1", "EA0_EB", "EA1_EB", "EA_EB")
 """Closest-feature types of an edge-edge pair (``EA_EB0``: vertex eb0 against edge a, ``EA_EB``: line-line)."""
+
+STRESS_FILTERS = ("none", "clamp", "abs")
+"""How :func:`membrane_energy` treats the stress term of its Hessians: exactly, with the stress's positive part, or
+with its absolute value."""
 
 
 class ElementTerms(NamedTuple):
@@ -287,13 +292,35 @@ def _stvk_density(x0: Any, x1: Any, x2: Any, dm_inv: Any, mu: Any, lam: Any):
 
 
 @wp.func
-def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, lam: Any):
+def _negative_part(s00: Any, s01: Any, s11: Any):
+    """The negative part ``Σ_{λ<0} λ v vᵀ`` of the symmetric 2×2 matrix ``[[s00, s01], [s01, s11]]``, as
+    ``(n00, n01, n11)``: with eigenvalues ``m ± r``, the projector onto the smaller one's eigenvector is
+    ``(m + r − S) / 2r``."""
+    zero = type(s00)(0.0)
+    m = type(s00)(0.5) * (s00 + s11)
+    h = type(s00)(0.5) * (s00 - s11)
+    r = wp.sqrt(h * h + s01 * s01)
+    low = m - r
+    if low >= zero:
+        return zero, zero, zero
+    if m + r < zero:
+        return s00, s01, s11
+    c = low / (type(s00)(2.0) * r)  # r > 0 here: the eigenvalues have opposite signs
+    return c * (m + r - s00), -c * s01, c * (m + r - s11)
+
+
+@wp.func
+def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, lam: Any, stress_filter: int):
     """StVK membrane energy of one triangle with its gradient and Hessian (PhysAvatar §3.2, Codim-IPC [52]).
 
     ``F = D_s D_m⁻¹`` (3×2), ``E = ½(FᵀF − I)``, ``Ψ = μ‖E‖²_F + ½λ tr(E)²``, energy ``A Ψ``. Writing
     ``F = Σ_k x_k β_kᵀ`` (``β_k`` the rows of ``D_m⁻¹``, ``β_0 = −β_1 − β_2``) and ``a_k = F β_k``:
     gradient ``A P β_k`` with ``P = F S``, ``S = 2μE + λ tr(E) I``; Hessian block
     ``H_kl = A [(β_kᵀ S β_l) I + μ a_l a_kᵀ + μ (β_k·β_l) F Fᵀ + λ a_k a_lᵀ]``.
+
+    The last three terms are ``dE : C : dE ≥ 0``; only the stress term ``(β_kᵀ S β_l) I`` can be indefinite, where
+    ``S`` has a negative eigenvalue (compression). ``stress_filter`` 1 puts ``S``'s positive part in that term
+    instead, 2 its absolute value: either makes the Hessian PSD (:data:`STRESS_FILTERS`).
     """
     beta1 = wp.vector(dm_inv[0, 0], dm_inv[0, 1])
     beta2 = wp.vector(dm_inv[1, 0], dm_inv[1, 1])
@@ -302,6 +329,12 @@ def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, l
     s00 = type(area)(2.0) * mu * e00 + lam * tr
     s01 = type(area)(2.0) * mu * e01
     s11 = type(area)(2.0) * mu * e11 + lam * tr
+    # the stress of the Hessian's geometric term: S, S − S₋ or S − 2 S₋
+    n00, n01, n11 = _negative_part(s00, s01, s11)
+    c = type(area)(stress_filter)
+    t00 = s00 - c * n00
+    t01 = s01 - c * n01
+    t11 = s11 - c * n11
     ffT = wp.outer(f0, f0) + wp.outer(f1, f1)
     eye = wp.identity(n=3, dtype=type(area))
     g = wp.vector(length=9, dtype=type(area))
@@ -313,6 +346,7 @@ def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, l
         elif k == 2:
             bk = beta2
         sbk = wp.vector(s00 * bk[0] + s01 * bk[1], s01 * bk[0] + s11 * bk[1])
+        tbk = wp.vector(t00 * bk[0] + t01 * bk[1], t01 * bk[0] + t11 * bk[1])
         ak = f0 * bk[0] + f1 * bk[1]
         g = _add_vec(g, k, area * (f0 * sbk[0] + f1 * sbk[1]))
         for l in range(3):
@@ -322,7 +356,7 @@ def _stvk_membrane(x0: Any, x1: Any, x2: Any, dm_inv: Any, area: Any, mu: Any, l
             elif l == 2:
                 bl = beta2
             al = f0 * bl[0] + f1 * bl[1]
-            block = eye * wp.dot(bl, sbk) + mu * wp.outer(al, ak) + (mu * wp.dot(bk, bl)) * ffT + lam * wp.outer(ak, al)
+            block = eye * wp.dot(bl, tbk) + mu * wp.outer(al, ak) + (mu * wp.dot(bk, bl)) * ffT + lam * wp.outer(ak, al)
             h = _add_block(h, k, l, area * block)
     return area * psi, g, h
 
@@ -335,12 +369,14 @@ def _membrane_kernel(
     rest_area: wp.array(dtype=Any),
     mu: wp.array(dtype=Any),
     lam: wp.array(dtype=Any),
+    stress_filter: int,
     energy: wp.array(dtype=Any),
     grad: wp.array3d(dtype=Any),
     hess: wp.array3d(dtype=Any),
 ):
     i = wp.tid()
-    e, g, h = _stvk_membrane(x[faces[i, 0]], x[faces[i, 1]], x[faces[i, 2]], rest_inv[i], rest_area[i], mu[i], lam[i])
+    x0, x1, x2 = x[faces[i, 0]], x[faces[i, 1]], x[faces[i, 2]]
+    e, g, h = _stvk_membrane(x0, x1, x2, rest_inv[i], rest_area[i], mu[i], lam[i], stress_filter)
     _store(energy, grad, hess, i, e, g, h, 3)
 
 
@@ -369,12 +405,21 @@ def membrane_energy(
     mu: torch.Tensor | float,
     lam: torch.Tensor | float,
     project: bool = False,
+    stress_filter: str = "none",
 ) -> ElementTerms:
     """StVK membrane energy of each triangle, with per-vertex gradients and the element Hessian (§3.2).
 
     ``Ψ = μ‖E‖²_F + ½λ tr(E)²`` with ``E = ½(FᵀF − I₂)``, ``F = D_s D_m⁻¹``; element energy ``A Ψ``. The caller
     passes ``μ`` and ``λ`` already multiplied by the sheet thickness (:func:`plane_stress_lame`), so the
     paper's membrane stiffness ``κ_s`` scales both.
+
+    The Hessian is ``A [(β_kᵀ S β_l) I + dE : C : dE]`` per vertex pair (``S`` the second Piola–Kirchhoff stress,
+    ``β_k`` the rows of ``D_m⁻¹``); the material part is PSD, the stress part wherever ``S`` is, that is unless the
+    triangle is compressed. ``stress_filter`` makes every Hessian PSD in the kernel, in closed form: ``"clamp"``
+    puts ``S``'s positive part in the stress term, ``"abs"`` its absolute value (the analogue of flipping negative
+    eigenvalues). Each equals the exact Hessian on a triangle under tension, and neither needs an eigensolver; on the
+    skirt7271 walk (14 frames) ``"abs"`` took 118 Newton iterations where the flipped eigenvalues of each 9×9 Hessian
+    took 113.
 
     Args:
         x: ``[V, 3]`` float32 or float64 vertex positions, m.
@@ -384,13 +429,16 @@ def membrane_energy(
         mu: ``[F]`` or scalar thickness-integrated shear modulus ``h μ``, N/m.
         lam: ``[F]`` or scalar thickness-integrated plane-stress ``h λ``, N/m.
         project: replace each Hessian by its nearest PSD matrix (:func:`project_psd`).
+        stress_filter: ``"none"`` (the exact Hessian), ``"clamp"`` or ``"abs"`` (:data:`STRESS_FILTERS`).
 
     Returns:
         :class:`ElementTerms` with ``energy [F]`` (J), ``grad [F, 3, 3]``, ``hess [F, 9, 9]``.
     """
+    if stress_filter not in STRESS_FILTERS:
+        raise ValueError(f"stress_filter ({stress_filter!r}) must be one of {', '.join(map(repr, STRESS_FILTERS))}")
     n, inputs = _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam)
     out = _allocate(x, n, 3)
-    _launch(_membrane_kernel, n, inputs, out)
+    _launch(_membrane_kernel, n, [*inputs, STRESS_FILTERS.index(stress_filter)], out)
     return _finish(out, project)
 
 

@@ -114,11 +114,19 @@ class ClothConfig:
             ``"abs"`` flips their negative eigenvalues (absolute eigenvalue filtering, Chen et al. 2024), ``"clamp"``
             zeroes them (the nearest PSD matrix, as C-IPC); ``"auto"``: abs for dynamic steps, clamp for static
             solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance
-            sooner, while clamping converges faster in the tail of a tight solve. Measured: the 3757-vertex
-            ``skirt7271`` on the walking mannequin, default tolerance, first 4 frames: 40 Newton iterations with
-            abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric of :mod:`physavatar.estimate` at 1e-4
-            m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip to 1e-9 m: clamp converges, abs
-            does not within 30 iterations. Barrier Hessians are always clamped.
+            sooner, while clamping converges faster in the tail of a tight solve. Measured with both filtered by
+            their eigen-decomposition: the 3757-vertex ``skirt7271`` on the walking mannequin, default tolerance,
+            first 4 frames: 40 Newton iterations with abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric
+            of :mod:`physavatar.estimate` at 1e-4 m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip
+            to 1e-9 m: clamp converges, abs does not within 30 iterations. Barrier Hessians are always clamped.
+        membrane_filter: how ``elastic_projection`` is applied to the membrane: ``"eigen"`` to the eigenvalues of
+            each 9×9 Hessian (a batched eigensolver), ``"stress"`` in the kernel, in closed form, to the stress in
+            the Hessian's only indefinite term (``stress_filter`` of :func:`kernels.cloth.membrane_energy`). The
+            stress filter saves the eigensolver but converges more slowly: over the first 14 frames of the walk
+            above 118 Newton iterations against 113; the 8×8 sheet dropped on a sphere of the tests, 8 frames: 137
+            against 119. On an H100, frames 4-13 of the walk: 13.0-14.1 ms per Newton iteration against 14.9, but 87
+            iterations against 81, so a frame takes about as long (113-123 ms, two runs, against 121 ms); the
+            eigen-decomposition stays the default for its steadier convergence.
         gravity: gravitational acceleration ``[3]``, m/s².
         static: minimise ``Ψ − Σ m g·x`` without inertia or friction (a static equilibrium solve; needs
             Dirichlet vertices); ``Δt`` then only scales the barrier stiffness and the tolerance.
@@ -152,6 +160,7 @@ class ClothConfig:
     newton_tolerance: float = 1e-2
     max_newton_iterations: int = 50
     elastic_projection: str = "auto"
+    membrane_filter: str = "eigen"
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
     static: bool = False
     linear_solver: str = "auto"
@@ -188,6 +197,8 @@ class ClothConfig:
             raise ValueError(f"gravity must have 3 components, got {self.gravity}")
         if self.elastic_projection not in ("auto", "abs", "clamp"):
             raise ValueError(f"elastic_projection ({self.elastic_projection!r}) must be 'auto', 'abs' or 'clamp'")
+        if self.membrane_filter not in ("eigen", "stress"):
+            raise ValueError(f"membrane_filter ({self.membrane_filter!r}) must be 'eigen' or 'stress'")
         if self.linear_solver not in LINEAR_SOLVERS:
             raise ValueError(
                 f"linear_solver ({self.linear_solver!r}) must be one of {', '.join(map(repr, LINEAR_SOLVERS))}"
@@ -892,8 +903,12 @@ class SolverCloth:
 
         e = self.energies
         rest = self.rest
-        membrane = e.membrane(x, self.faces, rest.rest_inv, rest.rest_area, self.membrane_mu, self.membrane_lambda)
-        add(self.faces, membrane, dt2, "membrane", elastic_projection)
+        in_kernel = cfg.membrane_filter == "stress"  # the membrane's Hessians are made PSD in the kernel
+        membrane = e.membrane(
+            x, self.faces, rest.rest_inv, rest.rest_area, self.membrane_mu, self.membrane_lambda,
+            stress_filter=elastic_projection if in_kernel else "none",
+        )  # fmt: skip
+        add(self.faces, membrane, dt2, "membrane", "none" if in_kernel else elastic_projection)
         bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
         add(self.hinges, bending, dt2, "bending", elastic_projection)
         if near.pt.shape[0] or near.ee.shape[0]:

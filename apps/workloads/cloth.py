@@ -56,8 +56,8 @@ def _sheet(n: int, width: float, height: float) -> tuple[torch.Tensor, torch.Ten
 def _reference_energies() -> ClothEnergies:
     """The solver's element evaluators with values, gradients and Hessians from the autograd references."""
 
-    def membrane(x, faces, rest_inv, rest_area, mu, lam, project=False):
-        terms = cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam))
+    def membrane(x, faces, rest_inv, rest_area, mu, lam, project=False, stress_filter="none"):
+        terms = cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter))
         return terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
 
     def bending(x, hinges, rest_angle, rest_weight, k_bend, project=False):

@@ -47,12 +47,33 @@ def _membrane_element(q, dm_inv, area, mu, lam):
     return area * (mu * (strain**2).sum() + 0.5 * lam * torch.trace(strain) ** 2)
 
 
-def membrane_energy(x, faces, rest_inv, rest_area, mu, lam):
-    """StVK membrane ``A (μ‖E‖² + ½λ tr(E)²)`` per triangle, with autograd gradient ``[F, 3, 3]`` and Hessian."""
+def _stvk_density(strain, mu, lam):
+    return mu * (strain**2).sum() + 0.5 * lam * torch.trace(strain) ** 2
+
+
+def membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter: str = "none"):
+    """StVK membrane ``A (μ‖E‖² + ½λ tr(E)²)`` per triangle, with autograd gradient ``[F, 3, 3]`` and Hessian.
+
+    ``stress_filter`` ``"clamp"`` or ``"abs"`` takes the negative part ``S₋`` of the stress ``S = ∂Ψ/∂E`` (autograd,
+    then ``torch.linalg.eigh``) out of the Hessian's stress term ``A (β_kᵀ S β_l) I`` once or twice.
+    """
     n = faces.shape[0]
     mu = torch.as_tensor(mu, dtype=x.dtype, device=x.device).expand(n)
     lam = torch.as_tensor(lam, dtype=x.dtype, device=x.device).expand(n)
-    return _terms(_membrane_element, x[faces.long()], rest_inv, rest_area, mu, lam)
+    q = x[faces.long()]
+    energy, g, h = _terms(_membrane_element, q, rest_inv, rest_area, mu, lam)
+    if stress_filter == "none":
+        return energy, g, h
+    f = torch.stack([q[:, 1] - q[:, 0], q[:, 2] - q[:, 0]], 2) @ rest_inv
+    strain = 0.5 * (f.transpose(1, 2) @ f - torch.eye(2, dtype=x.dtype, device=x.device))
+    stress = vmap(grad(_stvk_density))(strain, mu, lam)
+    value, vectors = torch.linalg.eigh(stress)
+    negative = (vectors * value.clamp(max=0.0)[:, None, :]) @ vectors.transpose(1, 2)
+    beta = torch.cat([-rest_inv.sum(1, keepdim=True), rest_inv], 1)  # [F, 3, 2]: row k is β_k
+    term = rest_area[:, None, None] * (beta @ negative @ beta.transpose(1, 2))
+    eye = torch.eye(3, dtype=x.dtype, device=x.device)
+    times = {"clamp": 1.0, "abs": 2.0}[stress_filter]
+    return energy, g, h - times * torch.einsum("fkl,ij->fkilj", term, eye).reshape(n, 9, 9)
 
 
 def dihedral_angle(q: torch.Tensor) -> torch.Tensor:

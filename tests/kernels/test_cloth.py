@@ -231,6 +231,32 @@ def test_projected_hessians_are_psd_and_unchanged_when_psd(device):
     torch.testing.assert_close(mp.energy, m.energy)
 
 
+@pytest.mark.parametrize("stress_filter", ["clamp", "abs"])
+def test_membrane_stress_filters_match_reference_and_are_psd(device, stress_filter):
+    """Filtered Hessians: the reference's (autograd stress, its eigen-decomposition) on a sheet whose triangles are
+    under tension, under mixed and under full compression; PSD; the exact Hessian where the triangle is stretched;
+    energies and gradients untouched."""
+    _, x, faces, _, rest = _deformed_sheet(4)
+    g = torch.Generator().manual_seed(3)
+    # per-vertex scalings that stretch some triangles and compress others along one or both axes
+    x = x * (0.75 + 0.5 * torch.rand(x.shape[0], 3, generator=g, dtype=F64))
+    args = (_dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.3, 0.6)
+    exact = _host(cloth.membrane_energy(_dev(x), *args))
+    got = _host(cloth.membrane_energy(_dev(x), *args, stress_filter=stress_filter))
+    _, _, want = ref.membrane_energy(x, faces, rest.rest_inv, rest.rest_area, 1.3, 0.6, stress_filter=stress_filter)
+    torch.testing.assert_close(got.hess, want, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(got.energy, exact.energy, rtol=0, atol=0)
+    torch.testing.assert_close(got.grad, exact.grad, rtol=0, atol=0)
+    exact_low = torch.linalg.eigvalsh(exact.hess)[:, 0]
+    assert exact_low.min() < -1e-3, "the test needs indefinite Hessians"
+    assert torch.linalg.eigvalsh(got.hess)[:, 0].min() > -1e-10
+    unchanged = (got.hess == exact.hess).all(2).all(1)
+    assert 0 < int(unchanged.sum()) < faces.shape[0], "the test needs triangles with and without compression"
+    assert bool((exact_low[unchanged] > -1e-10).all())
+    with pytest.raises(ValueError, match="stress_filter"):
+        cloth.membrane_energy(_dev(x), *args, stress_filter="flip")
+
+
 def test_float32_kernels_agree_with_float64(device):
     _, x, faces, hinges, rest = _deformed_sheet(5)
     out = {}
