@@ -11,15 +11,17 @@ of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the k
 per-pair NumPy root finder, far too slow for a step).
 
 ``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-202.8 ms per frame (4.93 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared
-on one machine, each code version in its own process: over frames 4-13 of the walk (the same 81 Newton
-iterations) 109.3 ms per frame (13.5 ms per Newton iteration) with the Newton matrices scattered by
-:mod:`kernels.assembly` onto a block pattern that outlives the step, against 149.7 ms (18.5 ms) with the COO
-assembly in torch. Phases over those frames: 52 % assembly (element Hessians, their batched eigen-filtering, the
-scatter), 20 % the sparse solves (factorisation and solve), 18 % candidate searches and filtering, 8 % the line
-search, 3 % CCD, 1 % friction. The phase shares in ``extra`` leave out the warm-up step, which compiles the
-kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.55 s per frame (4.47 s with the COO
-assembly), 51 % in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
+144.4 ms per frame (6.93 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared
+on one machine, each code version in its own process, over frames 4-13 of the walk (the same 81 Newton iterations).
+With the Newton matrices scattered by :mod:`kernels.assembly` onto a block pattern that outlives the step: 109.3 ms
+per frame (13.5 ms per Newton iteration) against 149.7 ms (18.5 ms) with the COO assembly in torch. With the Warp
+kernels launched through :func:`kernels.backend.launch` and fewer reads from the device (one per candidate search,
+two fewer per Newton iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6 ms, three
+runs). Phases over those frames: 55 % assembly (element Hessians, their batched eigen-filtering, the scatter), 19 %
+the sparse solves (factorisation and solve), 17 % candidate searches and filtering, 6 % the line search, 3 % CCD,
+1 % friction. The phase shares in ``extra`` leave out the warm-up step, which compiles the kernels. On this
+project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.66 s per frame (4.47 s with the COO assembly), half
+of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
 824.3 ms per frame (1.21 frames/s; 929.6 ms with the COO assembly; 5.10 s with block-Jacobi CG, which needed
