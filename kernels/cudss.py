@@ -212,6 +212,12 @@ class SparseSPDSolver:
 
         Returns whether it is positive definite (a ``False`` leaves no usable factor).
         """
+        self.queue_factor(crow, col, values)
+        return self.positive_definite()
+
+    def queue_factor(self, crow: torch.Tensor, col: torch.Tensor, values: torch.Tensor) -> None:
+        """:meth:`factor` without waiting for the factorisation to finish: a :meth:`solve` may be queued behind it,
+        and :meth:`positive_definite` says later whether both are valid (the status is a read from the device)."""
         crow = crow.to(self.device, torch.int32).contiguous()
         col = col.to(self.device, torch.int32).contiguous()
         values = values.to(self.device, torch.float64).contiguous()
@@ -252,10 +258,18 @@ class SparseSPDSolver:
             self._values = values  # cuDSS reads the values through this pointer
             self._execute(_PHASE_FACTORIZATION, None, None, "factorization")
             self.factorizations += 1
-            info = ctypes.c_int()
-            written = ctypes.c_size_t()
+
+    def positive_definite(self) -> bool:
+        """Whether the last factorisation met only positive pivots (it waits for that factorisation)."""
+        if self._pattern is None:
+            raise CudssError("positive_definite before factor: factor a matrix first")
+        info = ctypes.c_int()
+        written = ctypes.c_size_t()
+        with torch.cuda.device(self.device):
             _check(
-                lib.cudssDataGet(self._handle, self._data, _DATA_INFO, ctypes.byref(info), 4, ctypes.byref(written)),
+                self._lib.cudssDataGet(
+                    self._handle, self._data, _DATA_INFO, ctypes.byref(info), 4, ctypes.byref(written)
+                ),
                 "cudssDataGet(INFO)",
             )
         return info.value == 0

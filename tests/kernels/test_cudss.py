@@ -80,5 +80,12 @@ def test_factor_and_solve_match_a_dense_solve_and_reuse_the_analysis():
     x1 = solver.solve(rhs[:, 0].cuda()).cpu()
     torch.testing.assert_close(x1, torch.linalg.solve(2.0 * a, rhs[:, 0]), rtol=1e-10, atol=1e-12)
     assert (solver.analyses, solver.factorizations) == (1, 2)
+    # queued: the solve runs behind the factorisation and the status is read afterwards
+    solver.queue_factor(crow, col, 3.0 * values)
+    x3 = solver.solve(rhs.cuda()).cpu()
+    assert solver.positive_definite()
+    torch.testing.assert_close(x3, torch.linalg.solve(3.0 * a, rhs), rtol=1e-10, atol=1e-12)
+    solver.queue_factor(crow, col, -values)
+    assert not solver.positive_definite()
     # an indefinite matrix is reported, not factored silently
     assert not solver.factor(crow, col, -values)
