@@ -284,12 +284,15 @@ class ClothEnergies(NamedTuple):
 
 
 class _Pairs(NamedTuple):
-    """Contact candidates: ``pt [P, 4]``, ``ee [Q, 4]`` int32, and how many of each lead (garment–body first)."""
+    """Contact candidates: ``pt [P, 4]``, ``ee [Q, 4]`` int32, how many of each lead (garment–body first), and the
+    edge pairs' mollifier thresholds ``ε_x [Q]`` (:func:`kernels.cloth.edge_edge_mollifier_threshold`, found with
+    the candidates and carried along with them)."""
 
     pt: torch.Tensor
     ee: torch.Tensor
     pt_body: int
     ee_body: int
+    ee_eps: torch.Tensor
 
 
 class _Cover(NamedTuple):
@@ -390,14 +393,28 @@ distance of 0 for parallel, separated edges."""
 
 
 def _keep(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> _Pairs:
-    """The pairs selected by the masks, with the garment–body counts (one read back from the device: the counts
-    size the selections)."""
-    pt_body, pt, ee_body, ee = torch.stack(
-        [pt_keep[: pairs.pt_body].sum(), pt_keep.sum(), ee_keep[: pairs.ee_body].sum(), ee_keep.sum()]
-    ).tolist()
+    """The pairs selected by the masks (one read from the device: the counts size the selections)."""
+    return _select(pairs, pt_keep, ee_keep, _counts(pairs, pt_keep, ee_keep).tolist())
+
+
+def _counts(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> torch.Tensor:
+    """``[4]`` on the device: the garment–body and all point–triangle pairs the masks select, then the same for the
+    edge–edge pairs."""
+    return torch.stack([pt_keep[: pairs.pt_body].sum(), pt_keep.sum(), ee_keep[: pairs.ee_body].sum(), ee_keep.sum()])
+
+
+def _select(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor, counts: list[int]) -> _Pairs:
+    """The pairs selected by the masks, given their :func:`_counts` as read from the device."""
+    pt_body, pt, ee_body, ee = counts
     pt_rows = torch.nonzero_static(pt_keep, size=pt).squeeze(1)
     ee_rows = torch.nonzero_static(ee_keep, size=ee).squeeze(1)
-    return _Pairs(pairs.pt.index_select(0, pt_rows), pairs.ee.index_select(0, ee_rows), pt_body, ee_body)
+    return _Pairs(
+        pairs.pt.index_select(0, pt_rows),
+        pairs.ee.index_select(0, ee_rows),
+        pt_body,
+        ee_body,
+        pairs.ee_eps.index_select(0, ee_rows),
+    )
 
 
 def _unique_edges(faces: torch.Tensor) -> torch.Tensor:
@@ -474,6 +491,7 @@ class SolverCloth:
             else:
                 solver = "dense" if 3 * v <= DENSE_MAX_DOFS else "cg"
         self._cudss = cudss.SparseSPDSolver(device) if solver == "cudss" else None  # raises where cuDSS cannot load
+        self._unchecked = False  # the last solve queued an unchecked cuDSS factorisation (:meth:`_solved`)
         self._matrices = _NewtonMatrices([self.faces, self.hinges])
         self.linear_solver = solver
         margin = config.candidate_margin
@@ -528,13 +546,12 @@ class SolverCloth:
 
     def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
         cfg = self.config
-        timing = dict.fromkeys(PHASES, 0.0)
         X, target, ctx = self._context(state_in, control, dt)
         v, kinematic, free = self.vertex_count, ctx.kinematic, ctx.free
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
-        clock = _clock(X.device)
+        timer = _PhaseTimer(X.device)
 
-        start = clock()
+        timer.start()
         # the candidates reach from each vertex's start along its predicted path (inertial target, or kinematic
         # target) and a margin beyond: usually every Newton sweep of the step stays inside
         predicted = target.clone()
@@ -543,52 +560,75 @@ class SolverCloth:
         cover = self._cover(X, predicted, ctx, self.candidate_margin)
         searches = 1
         pairs = self._swept(X, torch.zeros_like(X), cover)
-        timing["broad_phase"] += clock() - start
+        timer.stop("broad_phase")
         self._check_separated(X, pairs, b0)
         if cfg.friction > 0.0 and not cfg.static:
-            start = clock()
+            timer.start()
             ctx = ctx._replace(friction=self._lagged_friction(X, pairs, ctx))
-            timing["friction"] += clock() - start
+            timer.stop("friction")
 
+        # Each iteration reads the device as little as it can: the flags below (convergence, cover, the sweep's
+        # candidate counts, pattern misses) in one read, the CCD bound with the first line-search trial in another.
         converged = False
         iterations = 0
         for _ in range(cfg.max_newton_iterations):
             iterations += 1
-            start = clock()
+            timer.start()
+            # the last sweep's candidates hold every pair within d̂ of X (the sweep ended there); the contact kernels
+            # take only those (fewer and smaller element Hessians: 8 ms per frame less on an H100 than all of them)
             energy, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx)
             p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
-            matrix, rhs = self._assemble(elements, grad, p_kin, ctx)
-            timing["assemble"] += clock() - start
-            start = clock()
-            p_free = self._solve(matrix, rhs.reshape(-1))
-            timing["solve"] += clock() - start
-            p = p_kin.clone()
-            p[free] = p_free.view(-1, 3)
-            step = p_free.abs().max() if p_free.numel() else p_free.new_zeros(())
-            flags = torch.stack([(p_kin == 0).all(), self._covers(cover, X, p)]).to(step.dtype)
-            reached, covered, step = torch.cat([flags, step[None]]).tolist()  # one device read
+            mass = None if cfg.static else self.mass[free]
+            active = self._matrices.prepare(elements, ctx.dof, free.numel())
+            timer.stop("assemble")
+            for checked in (False, True):
+                timer.start()
+                if checked:  # the pattern missed blocks, or the factorisation failed: again, waiting on each
+                    matrix, rhs = self._matrices.assemble(elements, -grad[free], ctx.dof, p_kin, mass)
+                    missing = torch.zeros(1, dtype=torch.int32, device=X.device)
+                else:
+                    matrix, rhs, missing = self._matrices.scatter(active, -grad[free], ctx.dof, p_kin, mass)
+                timer.stop("assemble")
+                timer.start()
+                p_free = self._solve(matrix, rhs.reshape(-1), wait=checked)
+                timer.stop("solve")
+                p = p_kin.clone()
+                p[free] = p_free.view(-1, 3)
+                timer.start()
+                keep = self._sweep_masks(X, p, cover)
+                timer.stop("broad_phase")
+                step = p_free.abs().max() if p_free.numel() else p_free.new_zeros(())
+                flags = [missing[0], (p_kin == 0).all(), self._covers(cover, X, p), step, energy]
+                read = torch.cat([torch.stack([f.to(F64) for f in flags]), _counts(cover.pairs, *keep).to(F64)])
+                read = read.tolist()  # one read from the device
+                if read[0] == 0.0 and self._solved():
+                    break
+            _, reached, covered, step, energy, *counts = read
             reached = reached == 1.0
             if reached and step / dt < cfg.newton_tolerance:
                 converged = True
                 break
-            start = clock()
-            if covered != 1.0:
+            timer.start()
+            if covered == 1.0:
+                pairs = _select(cover.pairs, *keep, [int(c) for c in counts])
+            else:
                 cover = self._cover(X, X + p, ctx, self.candidate_margin)
                 searches += 1
-            pairs = self._swept(X, p, cover)
-            timing["broad_phase"] += clock() - start
-            start = clock()
-            alpha = self._ccd_bound(X, p, pairs)
-            timing["ccd"] += clock() - start
-            start = clock()
+                pairs = self._swept(X, p, cover)
+            timer.stop("broad_phase")
+            timer.start()
+            bound = self._ccd_bound(X, p, pairs)
+            timer.stop("ccd")
+            timer.start()
             if reached:
-                while alpha > 1e-12:
-                    trial = X + alpha * p
-                    trial_energy = self._energy(trial, pairs, ctx)  # zero beyond d̂: no need to filter
-                    if trial_energy <= energy:
-                        break
+                # the first trial is the CCD bound itself, read with it
+                alpha, trial_energy = torch.stack([bound, self._energy(X + bound * p, pairs, ctx)]).tolist()
+                while alpha > 1e-12 and not trial_energy <= energy:
                     alpha *= 0.5
-            timing["line_search"] += clock() - start
+                    trial_energy = float(self._energy(X + alpha * p, pairs, ctx))  # zero beyond d̂: no filtering
+            else:
+                alpha = float(bound)
+            timer.stop("line_search")
             if alpha <= 1e-12:
                 break
             X = X + alpha * p
@@ -599,7 +639,7 @@ class SolverCloth:
         state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
         near = self._near(X, pairs, ctx)
         d_body, d_self, contacts = self._min_distances(X, near)
-        return StepStats(iterations, converged, d_body, d_self, contacts, timing, searches)
+        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches)
 
     # -- parameter sensitivities ------------------------------------------------------------------------------
 
@@ -802,11 +842,14 @@ class SolverCloth:
         """The candidates of ``cover`` whose boxes, swept over ``X → X + p`` and grown by ``d̂``, overlap, less
         edge pairs parallel at both ends of the sweep (:data:`PARALLEL_SIN2`). Equal to a fresh search of the sweep
         when ``cover`` covers it (:meth:`_covers`)."""
+        return _keep(cover.pairs, *self._sweep_masks(X, p, cover))
+
+    def _sweep_masks(self, X: torch.Tensor, p: torch.Tensor, cover: _Cover) -> tuple[torch.Tensor, torch.Tensor]:
+        """The masks of :meth:`_swept` over ``cover``'s point–triangle and edge–edge candidates (no read)."""
         dhat = self.config.contact_distance
         pairs = cover.pairs
         pt_keep = cloth.pair_boxes_overlap(X, p, pairs.pt, 1, dhat)
-        ee_keep = cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat, parallel=PARALLEL_SIN2)
-        return _keep(pairs, pt_keep, ee_keep)
+        return pt_keep, cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat, parallel=PARALLEL_SIN2)
 
     def _box_pairs(self, lo: torch.Tensor, hi: torch.Tensor, ctx: _StepContext) -> _Pairs:
         """Pairs whose primitives' boxes overlap, given each vertex's box ``[lo, hi]`` (the query side grown by
@@ -832,7 +875,9 @@ class SolverCloth:
             ]
         )
         pt_body, ee_body = pt_vb.shape[0] + pt_bv.shape[0], ee_b.shape[0]
-        return _Pairs(torch.cat([pt_vb, pt_bv, pt_self]), torch.cat([ee_b, ee_self]), pt_body, ee_body)
+        ee = torch.cat([ee_b, ee_self])
+        eps = cloth.edge_edge_mollifier_threshold(ctx.x_rest, ee)
+        return _Pairs(torch.cat([pt_vb, pt_bv, pt_self]), ee, pt_body, ee_body, eps)
 
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
@@ -840,15 +885,16 @@ class SolverCloth:
         pt_keep = cloth.pair_boxes_overlap(X, None, pairs.pt, 1, dhat)
         return _keep(pairs, pt_keep, cloth.pair_boxes_overlap(X, None, pairs.ee, 2, dhat))
 
-    def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> float:
-        """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021)."""
+    def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> torch.Tensor:
+        """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021), 0-d on
+        the device."""
         eta = self.config.ccd_eta
         times = [X.new_ones(1)]
         if pairs.pt.shape[0]:
             times.append(cloth.point_triangle_ccd(X, p, pairs.pt, eta=eta))
         if pairs.ee.shape[0]:
             times.append(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta))
-        return float(torch.cat(times).min())
+        return torch.cat(times).min()
 
     def _potential(
         self,
@@ -912,8 +958,7 @@ class SolverCloth:
         bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
         add(self.hinges, bending, dt2, "bending", elastic_projection)
         if near.pt.shape[0] or near.ee.shape[0]:
-            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
-            pt, ee = e.contact(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa, project=False)
+            pt, ee = e.contact(X, near.pt, near.ee, near.ee_eps, cfg.contact_distance**2, ctx.kappa, project=False)
             # only the active pairs (within d̂, so of positive energy) enter the matrix: the others would add zero
             # blocks joining garment vertices that no element joins, and so grow the sparsity pattern
             for index, terms in ((near.pt, pt), (near.ee, ee)):
@@ -944,8 +989,7 @@ class SolverCloth:
             e.bending_value(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend),
         ]
         if near.pt.shape[0] or near.ee.shape[0]:
-            eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
-            terms.extend(e.contact_value(X, near.pt, near.ee, eps_x, cfg.contact_distance**2, ctx.kappa))
+            terms.extend(e.contact_value(X, near.pt, near.ee, near.ee_eps, cfg.contact_distance**2, ctx.kappa))
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             terms.append(friction_potential(X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, False)[0])
         return energy + dt2 * torch.cat(terms).sum()
@@ -959,8 +1003,13 @@ class SolverCloth:
         mass = None if self.config.static else self.mass[ctx.free]
         return self._matrices.assemble(elements, -grad[ctx.free], ctx.dof, p_kin, mass)
 
-    def _solve(self, matrix: _Matrix, rhs: torch.Tensor) -> torch.Tensor:
-        """Solve ``H p = rhs`` for the free DOFs (``H`` SPD; ``rhs`` ``[3n]`` or ``[3n, P]``)."""
+    def _solve(self, matrix: _Matrix, rhs: torch.Tensor, wait: bool = True) -> torch.Tensor:
+        """Solve ``H p = rhs`` for the free DOFs (``H`` SPD; ``rhs`` ``[3n]`` or ``[3n, P]``).
+
+        With ``wait`` False, cuDSS's factorisation is not checked before its solve is queued: :meth:`_solved` says
+        afterwards whether the result holds (a failed factorisation leaves garbage, which the check then catches).
+        """
+        self._unchecked = False
         n = matrix.pattern.n
         if n == 0:
             return rhs.new_zeros(rhs.shape)
@@ -970,21 +1019,27 @@ class SolverCloth:
             return _dense_solve(matrix, rhs)
         if self.linear_solver == "cudss":
             pattern = matrix.pattern
-            if not self._cudss.factor(pattern.crow, pattern.col, matrix.values):
+            if not wait:
+                self._cudss.queue_factor(pattern.crow, pattern.col, matrix.values)
+                self._unchecked = True
+            elif not self._cudss.factor(pattern.crow, pattern.col, matrix.values):
                 return _dense_solve(matrix, rhs)
             return self._cudss.solve(rhs)
         if self.linear_solver == "direct":
             return torch.from_numpy(_sparse_spd_solve(matrix.to_scipy(), rhs.cpu().numpy())).to(rhs.device)
         return _block_jacobi_cg(matrix, rhs, self.config.cg_tolerance, self.config.cg_max_iterations)
 
+    def _solved(self) -> bool:
+        """Whether the last :meth:`_solve` holds (only an unchecked cuDSS factorisation can fail silently)."""
+        return not self._unchecked or self._cudss.positive_definite()
+
     def _lagged_friction(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Friction:
         """Normal forces ``μλ_k``, closest-point weights and tangent projectors of the contacts at ``x^t`` (IPC §5),
         by the Warp kernel :func:`kernels.friction.lagged_contacts`."""
         near = self._near(X, pairs, ctx)
-        eps_x = cloth.edge_edge_mollifier_threshold(ctx.x_rest, near.ee)
         dhat2 = self.config.contact_distance**2
         return _Friction(
-            *kernels_friction.lagged_contacts(X, near.pt, near.ee, eps_x, dhat2, ctx.kappa, self.config.friction)
+            *kernels_friction.lagged_contacts(X, near.pt, near.ee, near.ee_eps, dhat2, ctx.kappa, self.config.friction)
         )
 
     def _min_distances(self, X: torch.Tensor, pairs: _Pairs) -> tuple[float, float, int]:
@@ -1014,18 +1069,44 @@ class _StepContext(NamedTuple):
     friction: _Friction | None
 
 
-def _clock(device: torch.device) -> Callable[[], float]:
-    """``time.perf_counter`` that first waits for the device's queued work, so that each phase of a step is charged
-    with its own kernels (without it, CUDA's asynchronous launches bill them to the next phase that reads a value
-    back)."""
-    if device.type != "cuda":
-        return time.perf_counter
+class _PhaseTimer:
+    """Seconds per phase of a step (:data:`PHASES`), charged between :meth:`start` and :meth:`stop`.
 
-    def clock() -> float:
-        torch.cuda.synchronize(device)
-        return time.perf_counter()
+    On CUDA each mark is an event recorded on the stream, so that a phase is charged with its own kernels without
+    the host waiting for them (a synchronising clock would stall the launch queue at every phase boundary); the
+    elapsed times are read once, by :meth:`totals` at the end of the step. On the CPU it is ``time.perf_counter``.
+    """
 
-    return clock
+    def __init__(self, device: torch.device):
+        self.cuda = device.type == "cuda"
+        self.times = dict.fromkeys(PHASES, 0.0)
+        self.spans: list[tuple[str, torch.cuda.Event, torch.cuda.Event]] = []
+        self._start: float | torch.cuda.Event = 0.0
+
+    def _mark(self) -> float | torch.cuda.Event:
+        if not self.cuda:
+            return time.perf_counter()
+        event = torch.cuda.Event(enable_timing=True)
+        event.record()
+        return event
+
+    def start(self) -> None:
+        self._start = self._mark()
+
+    def stop(self, phase: str) -> None:
+        end = self._mark()
+        if self.cuda:
+            self.spans.append((phase, self._start, end))
+        else:
+            self.times[phase] += end - self._start
+
+    def totals(self) -> dict[str, float]:
+        if self.spans:
+            self.spans[-1][2].synchronize()
+            for phase, start, end in self.spans:
+                self.times[phase] += start.elapsed_time(end) * 1e-3
+            self.spans.clear()
+        return dict(self.times)
 
 
 def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
@@ -1086,7 +1167,8 @@ class _NewtonMatrices:
     The pattern starts as that of the garment's elements (membrane and bending join each vertex to its
     neighbours; body contacts add no block of their own, since only one garment vertex or one garment edge takes
     part). Self-contacts come and go: an assembly that meets a block outside the pattern (a pair of vertices joined
-    for the first time) grows the pattern by every block of the elements at hand, active or not, and assembles again.
+    for the first time) grows the pattern by every block of the elements at hand, active or not, and assembles again;
+    the Newton loop reads the count of such blocks with its other flags (:meth:`scatter` leaves it on the device).
     cuDSS analyses a pattern anew whenever it changes (60 ms for skirt7271 on an H100, against 2 ms for a
     numeric factorisation), so the pattern outlives the step: it restarts from the garment's elements only when the
     free vertices change or when contacts have doubled it.
@@ -1098,42 +1180,64 @@ class _NewtonMatrices:
     def __init__(self, elastic: list[torch.Tensor]):
         self.elastic = elastic
         self.pattern: assembly.BlockPattern | None = None
+        self._mass_slots: torch.Tensor | None = None
         self.dof: torch.Tensor | None = None
         self.elastic_blocks = 0
 
-    def _reset(self, dof: torch.Tensor, n: int) -> None:
-        keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
-        self.pattern = assembly.block_pattern(keys, n)
-        self.elastic_blocks = self.pattern.block_col.numel()
+    def _set_pattern(self, pattern: assembly.BlockPattern) -> None:
+        self.pattern = pattern
+        self._mass_slots = pattern.diagonal[:, [0, 1, 2], [0, 1, 2]].reshape(-1)  # each free DOF's diagonal entry
 
-    def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
-        """``(_Matrix, rhs [n, 3])``: ``Σ`` scaled, filtered element Hessians plus ``diag(mass)`` (when given), and
-        ``rhs`` less the kinematic pushes."""
-        n = rhs.shape[0]
+    def prepare(self, elements: list[_Element], dof: torch.Tensor, n: int) -> list[_Element]:
+        """The pattern for this step's free DOFs ``dof`` (``n`` free vertices), and ``elements`` as :meth:`scatter`
+        takes them: without their inactive members, PSD-filtered (:func:`_filtered`)."""
         if dof is not self.dof:  # a new step: keep the pattern if the free vertices are the same and it has not doubled
             same = self.dof is not None and self.dof.shape == dof.shape and bool(torch.equal(self.dof, dof))
             if not same or self.pattern.block_col.numel() > 2 * self.elastic_blocks:
-                self._reset(dof, n)
+                keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
+                self._set_pattern(assembly.block_pattern(keys, n))
+                self.elastic_blocks = self.pattern.block_col.numel()
             self.dof = dof
-        active = _filtered(elements)
+        return _filtered(elements)
+
+    def scatter(self, active: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
+        """``(_Matrix, rhs [n, 3], missing)``: ``Σ`` scaled element Hessians of ``active`` (from :meth:`prepare`)
+        plus ``diag(mass)`` (when given), ``rhs`` less the kinematic pushes, and the number of blocks that fell
+        outside the pattern (1-element int32 tensor, left on the device: nonzero means the matrix is incomplete;
+        :meth:`grow` the pattern and scatter again)."""
         p_kin = p_kin.contiguous()
+        values = rhs.new_zeros(self.pattern.col.numel())
+        out = rhs.clone()
+        missing = torch.zeros(1, dtype=torch.int32, device=rhs.device)
+        if mass is not None:
+            values[self._mass_slots] = mass.repeat_interleave(3)
+        for element in active:
+            index, hess, scale = element.index, element.hess, element.scale
+            assembly.scatter_hessians(self.pattern, values, out, missing, index, hess, dof, p_kin, scale)
+        return _Matrix(self.pattern, values), out, missing
+
+    def grow(self, elements: list[_Element], dof: torch.Tensor, n: int) -> None:
+        """Add every block of ``elements``, active or not, to the pattern."""
+        grown = [self.pattern.keys()] + [assembly.block_keys(element.index, dof, n) for element in elements]
+        self._set_pattern(assembly.block_pattern(torch.cat(grown), n))
+
+    def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
+        """``(_Matrix, rhs [n, 3])`` of :meth:`scatter`, the pattern grown until it holds every block."""
+        n = rhs.shape[0]
+        active = self.prepare(elements, dof, n)
         while True:
-            values = rhs.new_zeros(self.pattern.col.numel())
-            out = rhs.clone()
-            missing = torch.zeros(1, dtype=torch.int32, device=rhs.device)
-            if mass is not None:
-                values[self.pattern.diagonal[:, [0, 1, 2], [0, 1, 2]].reshape(-1)] = mass.repeat_interleave(3)
-            for element in active:
-                index, hess, scale = element.index, element.hess, element.scale
-                assembly.scatter_hessians(self.pattern, values, out, missing, index, hess, dof, p_kin, scale)
+            matrix, out, missing = self.scatter(active, rhs, dof, p_kin, mass)
             if int(missing) == 0:
-                return _Matrix(self.pattern, values), out
-            grown = [self.pattern.keys()] + [assembly.block_keys(element.index, dof, n) for element in elements]
-            self.pattern = assembly.block_pattern(torch.cat(grown), n)
+                return matrix, out
+            self.grow(elements, dof, n)
 
 
 def _filtered(elements: list[_Element]) -> list[_Element]:
-    """``elements`` less their inactive members (one read from the device), with their Hessians PSD-filtered."""
+    """``elements`` less their inactive members (one read from the device), with their Hessians PSD-filtered.
+
+    One batched eigensolver call per element kind: a call over bending and contact Hessians together took frames
+    4-5 of the walk (cuSOLVER's batched ``syevd``, contact Hessians many orders of magnitude stiffer than the
+    bending's) from 151 and 133 ms to 227 ms on an H100."""
     masks = [element.gate != 0.0 for element in elements if element.gate is not None]
     counts = iter(torch.stack([mask.sum() for mask in masks]).tolist() if masks else [])
     masks = iter(masks)

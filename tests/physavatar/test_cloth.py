@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from kernels import backend, cudss
-from physavatar.cloth import ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
+from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
 from physavatar.shapes import grid_sheet, icosphere
 
 F64 = torch.float64
@@ -111,6 +111,8 @@ def test_sheet_dropped_on_sphere_never_penetrates(device):
         assert stats.min_distance_body > 0.0 and stats.min_distance_self > 0.0
         assert float(torch.linalg.norm(state.x, dim=1).min()) > inscribed  # outside the polyhedron's inner ball
         touched |= stats.min_distance_body < solver.config.contact_distance
+        assert set(stats.time) == set(PHASES) and min(stats.time.values()) >= 0.0
+        assert stats.time["assemble"] > 0.0 and stats.time["solve"] > 0.0 and stats.time["broad_phase"] > 0.0
     assert touched, "the sheet never reached the sphere"
     centre = int(torch.linalg.norm(solver.x_rest[:, [0, 2]], dim=1).argmin())
     assert inscribed < float(state.x[centre, 1]) < float(body[:, 1].max()) + 2e-3  # resting on the sphere's top
@@ -291,3 +293,16 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
     assert patterns[4] is not patterns[3] and patterns[4].n == 7
     if solver is not None:
         assert solver.analyses == 3
+
+    # the Newton loop scatters without reading: the blocks outside the pattern are counted on the device
+    fresh, dof, elements = _NewtonMatrices([faces]), dofs([4]), [membrane, contact]
+    rhs = torch.randn(8, 3, generator=g, dtype=F64).to(torch_device)
+    push = p_kin * (dof < 0)[:, None]
+    active = fresh.prepare(elements, dof, 8)
+    assert int(fresh.scatter(active, rhs, dof, push, None)[2]) > 0
+    fresh.grow(elements, dof, 8)
+    matrix, out, missing = fresh.scatter(active, rhs, dof, push, None)
+    expected, pushed = newton_matrix(8, [(e.index, e.hess, e.scale) for e in elements], dof, push)
+    assert int(missing) == 0
+    torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
