@@ -10,12 +10,13 @@ Conventions:
 
 * Every per-element Hessian is exact (closed form, no Gauss-Newton truncation); ``project=True`` replaces it by
   its nearest positive semi-definite matrix (eigenvalues clamped at zero). The projection runs after the
-  kernel as one batched ``torch.linalg.eigh`` (LAPACK on CPU, cuSOLVER on CUDA). Measured, float32, 128² sheet
-  (32 258 faces, 48 133 hinges) on an H100: membrane 0.47 ms, +2.9 ms to project; bending 0.50 ms, +5.1 ms
-  to project. On this project's 2-core CPU (7 938 faces, 11 781 hinges): membrane 1.8 ms, +62 ms; bending
-  9.6 ms, +114 ms. A per-thread Jacobi eigensolver in Warp was measured and is slower on both devices
-  (:mod:`kernels.assembly` gives the figures); the solver skips projection where the Hessian is known PSD (barrier
-  pairs far from contact have zero Hessians).
+  kernel as one batched eigen-decomposition: cuSOLVER's batched Jacobi solver on CUDA (:mod:`kernels.cusolver`,
+  about 3× faster than ``torch.linalg.eigh`` there, and it does not wait for the device), ``torch.linalg.eigh``
+  (LAPACK) on the CPU. Measured with ``torch.linalg.eigh``, float32, 128² sheet (32 258 faces, 48 133 hinges) on
+  an H100: membrane 0.47 ms, +2.9 ms to project; bending 0.50 ms, +5.1 ms to project. On this project's 2-core
+  CPU (7 938 faces, 11 781 hinges): membrane 1.8 ms, +62 ms; bending 9.6 ms, +114 ms. A per-thread Jacobi
+  eigensolver in Warp was measured and is slower on both devices (:mod:`kernels.assembly` gives the figures); the
+  solver skips projection where the Hessian is known PSD (barrier pairs far from contact have zero Hessians).
 * Squared distances are what IPC differentiates: ``d`` below is always a squared distance, ``d̂²`` the squared
   activation distance.
 * Kernels are generic over the scalar type: ``x`` in float32 runs float32 kernels (the default, for GPU
@@ -30,7 +31,7 @@ from typing import Any, NamedTuple
 import torch
 import warp as wp
 
-from kernels import backend
+from kernels import backend, cusolver
 
 # Every derivative here is written out in closed form; Warp's adjoint code would only add compile time.
 wp.set_module_options({"enable_backward": False})
@@ -216,13 +217,17 @@ def project_psd(hess: torch.Tensor, absolute: bool = False) -> torch.Tensor:
 
     Returns:
         ``[N, n, n]``: ``Q max(Λ, 0) Qᵀ`` of each eigen-decomposition ``Q Λ Qᵀ`` (the nearest PSD matrix in the
-        Frobenius norm), or ``Q |Λ| Qᵀ`` with ``absolute``.
+        Frobenius norm), or ``Q |Λ| Qᵀ`` with ``absolute``. The decompositions are cuSOLVER's batched Jacobi
+        (:func:`kernels.cusolver.eigh`) on CUDA where it loads, ``torch.linalg.eigh`` elsewhere.
     """
     if hess.shape[0] > _EIGH_BATCH:  # cuSOLVER's batched eigensolver fails on very large batches
         return torch.cat([project_psd(part, absolute) for part in hess.split(_EIGH_BATCH)])
     if hess.shape[0] == 0:
         return hess.clone()
-    eigval, eigvec = torch.linalg.eigh(hess)
+    if hess.device.type == "cuda" and hess.shape[-1] <= cusolver.MAX_SIZE and cusolver.available():
+        eigval, eigvec, _ = cusolver.eigh(hess)  # batched Jacobi: 3× faster, and no read from the device
+    else:
+        eigval, eigvec = torch.linalg.eigh(hess)
     eigval = eigval.abs() if absolute else eigval.clamp_min(0.0)
     return (eigvec * eigval.unsqueeze(-2)) @ eigvec.transpose(-1, -2)
 
