@@ -10,23 +10,30 @@ reference runs the same solver with the element energies, gradients and Hessians
 of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
 per-pair NumPy root finder, far too slow for a step).
 
-``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky):
-144.4 ms per frame (6.93 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared
-on one machine, each code version in its own process, over frames 4-13 of the walk (the same 81 Newton iterations).
-With the Newton matrices scattered by :mod:`kernels.assembly` onto a block pattern that outlives the step: 109.3 ms
-per frame (13.5 ms per Newton iteration) against 149.7 ms (18.5 ms) with the COO assembly in torch. With the Warp
-kernels launched through :func:`kernels.backend.launch` and fewer reads from the device (one per candidate search,
-two fewer per Newton iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6 ms, three
-runs). Phases over those frames: 55 % assembly (element Hessians, their batched eigen-filtering, the scatter), 19 %
-the sparse solves (factorisation and solve), 17 % candidate searches and filtering, 6 % the line search, 3 % CCD,
-1 % friction. The phase shares in ``extra`` leave out the warm-up step, which compiles the kernels. On this
-project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.66 s per frame (4.47 s with the COO assembly), half
-of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
+``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky): 103.0 ms
+per frame (9.71 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared on one
+machine, each code version in its own process, over frames 4-13 of the walk (the same 81 Newton iterations). With the
+Newton matrices scattered by :mod:`kernels.assembly` onto a block pattern that outlives the step: 109.3 ms per frame
+(13.5 ms per Newton iteration) against 149.7 ms (18.5 ms) with the COO assembly in torch. With the Warp kernels launched
+through :func:`kernels.backend.launch` and fewer reads from the device (one per candidate search, two fewer per Newton
+iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6 ms, three runs). With phase times from
+CUDA events and the reads of an iteration merged: 100.0-102.0 ms against 110.7 ms. With the element Hessians
+PSD-filtered by cuSOLVER's batched Jacobi eigensolver (:mod:`kernels.cusolver`): 88.4-101.4 ms against 125.0 ms, and
+this benchmark 103.0 ms against 133.8 ms. Phases over those frames (GPU time between CUDA events): 47 % assembly
+(element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves (factorisation and solve), 19 %
+candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the Jacobi filter a Newton
+iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it the factorisation), 2.3
+ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the rest in about 390 small
+kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step, which compiles the
+kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged
+reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 %
+in the broad phase.
 
-``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
-824.3 ms per frame (1.21 frames/s; 929.6 ms with the COO assembly; 5.10 s with block-Jacobi CG, which needed
-thousands of iterations per solve), 5.7x the reference; 50 Newton iterations and 7119 contacts on the last step,
-whose time went 63 % to assembly, 24 % to the solves, 9 % to the broad phase and 4 % to the line search.
+``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS; measured
+before the merged reads and the Jacobi filter): 824.3 ms per frame (1.21 frames/s; 929.6 ms with the COO assembly; 5.10
+s with block-Jacobi CG, which needed thousands of iterations per solve), 5.7x the reference; 50 Newton iterations and
+7119 contacts on the last step, whose time went 63 % to assembly, 24 % to the solves, 9 % to the broad phase and 4 % to
+the line search.
 """
 
 from __future__ import annotations
