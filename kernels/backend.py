@@ -19,6 +19,10 @@ tensor in program order without extra synchronisation.
 from __future__ import annotations
 
 import contextlib
+import ctypes.util
+import glob
+import os
+import sys
 
 import torch
 
@@ -263,6 +267,23 @@ def taichi_arg(tensor: torch.Tensor) -> torch.Tensor:
     """
     _check_on_device(tensor, "taichi_arg")
     return tensor
+
+
+def nvidia_library_candidates(name: str, environment: str) -> list[str]:
+    """Paths to try, in order, for the NVIDIA library ``lib{name}.so`` that :mod:`kernels.cudss` and
+    :mod:`kernels.cusolver` bind with ``ctypes``: the path in ``$environment``, the ``nvidia`` wheels on ``sys.path``
+    (``nvidia/cu13/lib``, ``nvidia/cu12/lib``, ``nvidia/{name}/lib``; torch's CUDA wheels bring them), the loader's
+    search path."""
+    found = []
+    if os.environ.get(environment):
+        found.append(os.environ[environment])
+    for root in sys.path:
+        for sub in ("nvidia/cu13/lib", "nvidia/cu12/lib", f"nvidia/{name}/lib"):
+            found += sorted(glob.glob(os.path.join(root or ".", sub, f"lib{name}.so*")), reverse=True)
+    library = ctypes.util.find_library(name)
+    if library:
+        found.append(library)
+    return found
 
 
 @contextlib.contextmanager

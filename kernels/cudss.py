@@ -16,12 +16,13 @@ that assemble many matrices on one pattern.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import glob
 import os
 import sys
 
 import torch
+
+from kernels import backend
 
 __all__ = ["CudssError", "SparseSPDSolver", "available", "block_pattern_csr", "blocks_to_csr", "version"]
 
@@ -57,19 +58,6 @@ class CudssError(RuntimeError):
     """A cuDSS call failed, or the library cannot be used."""
 
 
-def _candidates() -> list[str]:
-    found = []
-    if os.environ.get("CUDSS_LIBRARY"):
-        found.append(os.environ["CUDSS_LIBRARY"])
-    for root in sys.path:
-        for sub in ("nvidia/cu13/lib", "nvidia/cu12/lib", "nvidia/cudss/lib"):
-            found += sorted(glob.glob(os.path.join(root or ".", sub, "libcudss.so*")), reverse=True)
-    name = ctypes.util.find_library("cudss")
-    if name:
-        found.append(name)
-    return found
-
-
 def _preload_dependencies(path: str) -> None:
     """Load the cuBLAS and NVRTC that ``path`` needs globally, from the ``nvidia`` wheels beside it or on
     ``sys.path`` (torch's own, when it was installed from wheels), so that the loader finds them.
@@ -95,7 +83,7 @@ def _load() -> ctypes.CDLL:
     if _load_error is not None:
         raise CudssError(_load_error)
     errors = []
-    for path in _candidates():
+    for path in backend.nvidia_library_candidates("cudss", "CUDSS_LIBRARY"):
         try:
             library = ctypes.CDLL(path)
         except OSError:

@@ -25,12 +25,10 @@ path in ``$CUSOLVER_LIBRARY`` goes first, the loader's search path last. :func:`
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
-import glob
-import os
-import sys
 
 import torch
+
+from kernels import backend
 
 __all__ = ["CusolverError", "MAX_SIZE", "available", "eigh"]
 
@@ -61,19 +59,6 @@ class CusolverError(RuntimeError):
     """A cuSOLVER call failed, or the library cannot be used."""
 
 
-def _candidates() -> list[str]:
-    found = []
-    if os.environ.get("CUSOLVER_LIBRARY"):
-        found.append(os.environ["CUSOLVER_LIBRARY"])
-    for root in sys.path:
-        for sub in ("nvidia/cu13/lib", "nvidia/cu12/lib", "nvidia/cusolver/lib"):
-            found += sorted(glob.glob(os.path.join(root or ".", sub, "libcusolver.so*")), reverse=True)
-    name = ctypes.util.find_library("cusolver")
-    if name:
-        found.append(name)
-    return found
-
-
 def _load() -> ctypes.CDLL:
     global _library, _load_error
     if _library is not None:
@@ -81,7 +66,7 @@ def _load() -> ctypes.CDLL:
     if _load_error is not None:
         raise CusolverError(_load_error)
     errors = []
-    for path in _candidates():
+    for path in backend.nvidia_library_candidates("cusolver", "CUSOLVER_LIBRARY"):
         try:
             library = ctypes.CDLL(path)
         except OSError as error:

@@ -108,3 +108,13 @@ def test_one_torch_thread_on_cpu_limits_and_restores_the_thread_count(device):
         with backend.one_torch_thread_on_cpu():
             raise RuntimeError("the count is restored on errors too")
     assert torch.get_num_threads() == before
+
+
+def test_nvidia_libraries_are_looked_for_at_the_environments_path_first(monkeypatch, tmp_path):
+    monkeypatch.setenv("EXAMPLE_LIBRARY", "/opt/example/libexample.so")
+    wheel = tmp_path / "nvidia" / "example" / "lib"
+    wheel.mkdir(parents=True)
+    (wheel / "libexample.so.2").touch()
+    monkeypatch.syspath_prepend(str(tmp_path))
+    found = backend.nvidia_library_candidates("example", "EXAMPLE_LIBRARY")
+    assert found[:2] == ["/opt/example/libexample.so", str(wheel / "libexample.so.2")]
