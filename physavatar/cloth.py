@@ -584,7 +584,7 @@ class SolverCloth:
             for checked in (False, True):
                 timer.start()
                 if checked:  # the pattern missed blocks, or the factorisation failed: again, waiting on each
-                    matrix, rhs = self._matrices.assemble(elements, -grad[free], ctx.dof, p_kin, mass)
+                    matrix, rhs = self._matrices.complete(active, elements, -grad[free], ctx.dof, p_kin, mass)
                     missing = torch.zeros(1, dtype=torch.int32, device=X.device)
                 else:
                     matrix, rhs, missing = self._matrices.scatter(active, -grad[free], ctx.dof, p_kin, mass)
@@ -1223,13 +1223,16 @@ class _NewtonMatrices:
 
     def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
         """``(_Matrix, rhs [n, 3])`` of :meth:`scatter`, the pattern grown until it holds every block."""
-        n = rhs.shape[0]
-        active = self.prepare(elements, dof, n)
+        return self.complete(self.prepare(elements, dof, rhs.shape[0]), elements, rhs, dof, p_kin, mass)
+
+    def complete(self, active: list[_Element], elements: list[_Element], rhs: torch.Tensor, dof, p_kin, mass):
+        """:meth:`assemble` from the prepared ``active`` elements: :meth:`scatter` them, :meth:`grow` the pattern by
+        ``elements`` (from which they were prepared) while blocks fall outside it, and scatter again."""
         while True:
             matrix, out, missing = self.scatter(active, rhs, dof, p_kin, mass)
             if int(missing) == 0:
                 return matrix, out
-            self.grow(elements, dof, n)
+            self.grow(elements, dof, rhs.shape[0])
 
 
 def _filtered(elements: list[_Element]) -> list[_Element]:
