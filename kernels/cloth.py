@@ -49,6 +49,7 @@ __all__ = [
     "contact_energy_value",
     "edge_edge_ccd",
     "edge_edge_distance",
+    "edge_edge_distance_value",
     "edge_edge_mollifier_threshold",
     "hinges_from_faces",
     "membrane_energy",
@@ -57,6 +58,7 @@ __all__ = [
     "plane_stress_lame",
     "point_triangle_ccd",
     "point_triangle_distance",
+    "point_triangle_distance_value",
     "project_psd",
     "rest_state",
 ]
@@ -1159,6 +1161,36 @@ def edge_edge_distance(x: torch.Tensor, pairs: torch.Tensor) -> tuple[torch.Tens
     if pairs.shape[0]:
         backend.launch(_edge_edge_distance_kernel, pairs.shape[0], [_vec3(x), pairs, _parallel_tol(x), kind, *out])
     return kind, ElementTerms(*out)
+
+
+@wp.kernel
+def _distance_value_kernel(
+    x: wp.array(dtype=Any),
+    pairs: wp.array2d(dtype=wp.int32),
+    edge_edge: int,
+    parallel_tol: Any,
+    dist: wp.array(dtype=Any),
+):
+    i = wp.tid()
+    dist[i] = _pair_distance(x[pairs[i, 0]], x[pairs[i, 1]], x[pairs[i, 2]], x[pairs[i, 3]], edge_edge, parallel_tol)
+
+
+def point_triangle_distance_value(x: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """The ``[P]`` squared distances of :func:`point_triangle_distance` alone, m², without derivatives."""
+    return _distance_value(x, pairs, 0)
+
+
+def edge_edge_distance_value(x: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
+    """The ``[Q]`` squared distances of :func:`edge_edge_distance` alone, m², without derivatives."""
+    return _distance_value(x, pairs, 1)
+
+
+def _distance_value(x: torch.Tensor, pairs: torch.Tensor, edge_edge: int) -> torch.Tensor:
+    _check_positions(x)
+    _check_index(pairs, 4, "pairs")
+    dist = torch.empty(pairs.shape[0], dtype=x.dtype, device=x.device)
+    _launch(_distance_value_kernel, pairs.shape[0], [_vec3(x), pairs, edge_edge, _parallel_tol(x)], [dist])
+    return dist
 
 
 # ---------------------------------------------------------------------------------------------------------------

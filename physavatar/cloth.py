@@ -923,12 +923,12 @@ class SolverCloth:
         free_mask = ~ctx.kinematic[:v]
         energy = torch.zeros((), dtype=F64, device=X.device)
 
-        def add(index, terms, scale: float, name: str, projection: str = "none", gate=None) -> None:
+        def add(index, terms, scale: float, name: str, projection: str = "none", reach=None) -> None:
             nonlocal energy
             energy = energy + scale * terms.energy.sum()
             grad.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
-            if index.shape[0]:
-                elements.append(_Element(index, terms.hess, scale, projection, gate))
+            if index.shape[0] or reach is not None and reach.shape[0]:
+                elements.append(_Element(index, terms.hess, scale, projection, reach))
             if parts is not None:
                 part = parts.setdefault(name, torch.zeros_like(X))
                 part.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
@@ -958,11 +958,20 @@ class SolverCloth:
         bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
         add(self.hinges, bending, dt2, "bending", elastic_projection)
         if near.pt.shape[0] or near.ee.shape[0]:
-            pt, ee = e.contact(X, near.pt, near.ee, near.ee_eps, cfg.contact_distance**2, ctx.kappa, project=False)
-            # only the active pairs (within d̂, so of positive energy) enter the matrix: the others would add zero
-            # blocks joining garment vertices that no element joins, and so grow the sparsity pattern
-            for index, terms in ((near.pt, pt), (near.ee, ee)):
-                add(index, terms, dt2, "contact", "clamp" if project else "none", gate=terms.energy)
+            # Derivatives only for the active pairs (within d̂, so of positive energy), which the energy-only kernels
+            # pick (one read from the device): on skirt7271 walking they are a tenth of the candidates near X. The
+            # others would add nothing to the gradient and zero blocks to the matrix.
+            dhat2 = cfg.contact_distance**2
+            values = e.contact_value(X, near.pt, near.ee, near.ee_eps, dhat2, ctx.kappa)
+            counts = torch.stack([(value != 0.0).sum() for value in values]).tolist()
+            pt_pick, ee_pick = (
+                torch.nonzero_static(value != 0.0, size=count).squeeze(1)
+                for value, count in zip(values, counts, strict=True)
+            )
+            pt_active, ee_active = near.pt[pt_pick], near.ee[ee_pick]
+            pt, ee = e.contact(X, pt_active, ee_active, near.ee_eps[ee_pick], dhat2, ctx.kappa, project=False)
+            for index, reach, terms in ((pt_active, near.pt, pt), (ee_active, near.ee, ee)):
+                add(index, terms, dt2, "contact", "clamp" if project else "none", reach=reach)
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
                 X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, True
@@ -1045,8 +1054,8 @@ class SolverCloth:
     def _min_distances(self, X: torch.Tensor, pairs: _Pairs) -> tuple[float, float, int]:
         """Smallest garment–body and garment–garment distances among the pairs, m, and the pairs within ``d̂``."""
         dhat2 = self.config.contact_distance**2
-        d_pt = cloth.point_triangle_distance(X, pairs.pt)[1].energy if pairs.pt.shape[0] else X.new_zeros(0)
-        d_ee = cloth.edge_edge_distance(X, pairs.ee)[1].energy if pairs.ee.shape[0] else X.new_zeros(0)
+        d_pt = cloth.point_triangle_distance_value(X, pairs.pt)
+        d_ee = cloth.edge_edge_distance_value(X, pairs.ee)
         body = torch.cat([d_pt[: pairs.pt_body], d_ee[: pairs.ee_body]])
         own = torch.cat([d_pt[pairs.pt_body :], d_ee[pairs.ee_body :]])
         contacts = int((body < dhat2).sum() + (own < dhat2).sum())
@@ -1137,7 +1146,8 @@ class _Element(NamedTuple):
     hess: torch.Tensor  # [N, 3k, 3k] Hessians, unscaled and unfiltered
     scale: float  # factor on each Hessian (Δt²)
     projection: str  # PSD filter: "none", "clamp" (eigenvalues at least zero) or "abs" (their absolute values)
-    gate: torch.Tensor | None  # [N] energies: an element of zero energy is inactive and left out
+    reach: torch.Tensor | None  # [M, k] the candidates the elements were picked from (contacts): the pattern grows
+    # by all their blocks, so that the pairs that come within d̂ later seldom change it
 
 
 class _Matrix(NamedTuple):
@@ -1167,14 +1177,14 @@ class _NewtonMatrices:
     The pattern starts as that of the garment's elements (membrane and bending join each vertex to its
     neighbours; body contacts add no block of their own, since only one garment vertex or one garment edge takes
     part). Self-contacts come and go: an assembly that meets a block outside the pattern (a pair of vertices joined
-    for the first time) grows the pattern by every block of the elements at hand, active or not, and assembles again;
-    the Newton loop reads the count of such blocks with its other flags (:meth:`scatter` leaves it on the device).
-    cuDSS analyses a pattern anew whenever it changes (60 ms for skirt7271 on an H100, against 2 ms for a
-    numeric factorisation), so the pattern outlives the step: it restarts from the garment's elements only when the
-    free vertices change or when contacts have doubled it.
+    for the first time) grows the pattern by every block of the elements at hand and of the contact candidates they
+    were picked from, and assembles again; the Newton loop reads the count of such blocks with its other flags
+    (:meth:`scatter` leaves it on the device). cuDSS analyses a pattern anew whenever it changes (60 ms for
+    skirt7271 on an H100, against 2 ms for a numeric factorisation), so the pattern outlives the step: it restarts
+    from the garment's elements only when the free vertices change or when contacts have doubled it.
 
     Each element kind's Hessians are PSD-filtered by one batched eigensolver call (:func:`kernels.cloth.project_psd`),
-    after inactive contacts are dropped, then scattered by one Warp launch (:mod:`kernels.assembly`).
+    then scattered by one Warp launch (:mod:`kernels.assembly`).
     """
 
     def __init__(self, elastic: list[torch.Tensor]):
@@ -1190,7 +1200,7 @@ class _NewtonMatrices:
 
     def prepare(self, elements: list[_Element], dof: torch.Tensor, n: int) -> list[_Element]:
         """The pattern for this step's free DOFs ``dof`` (``n`` free vertices), and ``elements`` as :meth:`scatter`
-        takes them: without their inactive members, PSD-filtered (:func:`_filtered`)."""
+        takes them: the non-empty ones, PSD-filtered (:func:`_filtered`)."""
         if dof is not self.dof:  # a new step: keep the pattern if the free vertices are the same and it has not doubled
             same = self.dof is not None and self.dof.shape == dof.shape and bool(torch.equal(self.dof, dof))
             if not same or self.pattern.block_col.numel() > 2 * self.elastic_blocks:
@@ -1217,8 +1227,9 @@ class _NewtonMatrices:
         return _Matrix(self.pattern, values), out, missing
 
     def grow(self, elements: list[_Element], dof: torch.Tensor, n: int) -> None:
-        """Add every block of ``elements``, active or not, to the pattern."""
-        grown = [self.pattern.keys()] + [assembly.block_keys(element.index, dof, n) for element in elements]
+        """Add every block of ``elements`` and of the candidates they were picked from to the pattern."""
+        grown = [self.pattern.keys()]
+        grown += [assembly.block_keys(e.index if e.reach is None else e.reach, dof, n) for e in elements]
         self._set_pattern(assembly.block_pattern(torch.cat(grown), n))
 
     def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
@@ -1236,24 +1247,19 @@ class _NewtonMatrices:
 
 
 def _filtered(elements: list[_Element]) -> list[_Element]:
-    """``elements`` less their inactive members (one read from the device), with their Hessians PSD-filtered.
+    """The non-empty ``elements`` with their Hessians PSD-filtered.
 
     One batched eigensolver call per element kind: a call over bending and contact Hessians together took frames
     4-5 of the walk (cuSOLVER's batched ``syevd``, contact Hessians many orders of magnitude stiffer than the
     bending's) from 151 and 133 ms to 227 ms on an H100."""
-    masks = [element.gate != 0.0 for element in elements if element.gate is not None]
-    counts = iter(torch.stack([mask.sum() for mask in masks]).tolist() if masks else [])
-    masks = iter(masks)
     out = []
     for element in elements:
-        if element.gate is not None:
-            active = torch.nonzero_static(next(masks), size=next(counts)).squeeze(1)
-            element = element._replace(index=element.index[active], hess=element.hess[active], gate=None)
-        if element.projection != "none" and element.index.shape[0]:
+        if not element.index.shape[0]:
+            continue
+        if element.projection != "none":
             hess = cloth.project_psd(element.hess, absolute=element.projection == "abs")
             element = element._replace(hess=hess, projection="none")
-        if element.index.shape[0]:
-            out.append(element)
+        out.append(element)
     return out
 
 

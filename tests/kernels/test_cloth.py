@@ -364,6 +364,23 @@ def test_distances_match_ipctk(device, kind, near):
 
 
 @pytest.mark.parametrize("kind", ["point_triangle", "edge_edge"])
+@pytest.mark.parametrize("near", [False, True])
+def test_distance_values_equal_the_distances_of_the_derivative_kernels(device, kind, near):
+    """The value-only distance kernels (the solver's statistics) give the derivative kernels' distances, of every
+    closest-feature type (near-parallel edges among them)."""
+    q = _random_pt(300, 11, near) if kind == "point_triangle" else _random_ee(300, 12, near)
+    x, pairs = _pairs_of(q)
+    x, pairs = _dev(x), _dev(pairs)
+    full = cloth.point_triangle_distance if kind == "point_triangle" else cloth.edge_edge_distance
+    value = cloth.point_triangle_distance_value if kind == "point_triangle" else cloth.edge_edge_distance_value
+    kinds, terms = full(x, pairs)
+    assert len(set(kinds.tolist())) >= (2 if near else 3)
+    # one code path against another: CUDA may fuse multiply-adds differently per kernel
+    torch.testing.assert_close(value(x, pairs), terms.energy, rtol=1e-13, atol=0.0)
+    assert value(x, pairs[:0]).shape == (0,)
+
+
+@pytest.mark.parametrize("kind", ["point_triangle", "edge_edge"])
 def test_distances_match_brute_force_reference(device, kind):
     q = _random_pt(60, 9, False) if kind == "point_triangle" else _random_ee(60, 10, False)
     x, pairs = _pairs_of(q)
