@@ -391,6 +391,10 @@ Their distance is the smallest end point–segment distance, which the point–t
 already bound; the edge-edge kernels classify such pairs by a machine-epsilon test and can report a line-line
 distance of 0 for parallel, separated edges."""
 
+REACH = 2.0
+"""Contact pairs within ``REACH · d̂`` of each other join the Newton matrix's sparsity pattern when it grows (active
+or not yet), so that pairs that close in later seldom change it (each change costs cuDSS a new analysis)."""
+
 
 def _keep(pairs: _Pairs, pt_keep: torch.Tensor, ee_keep: torch.Tensor) -> _Pairs:
     """The pairs selected by the masks (one read from the device: the counts size the selections)."""
@@ -574,9 +578,8 @@ class SolverCloth:
         for _ in range(cfg.max_newton_iterations):
             iterations += 1
             timer.start()
-            # the last sweep's candidates hold every pair within d̂ of X (the sweep ended there); the contact kernels
-            # take only those (fewer and smaller element Hessians: 8 ms per frame less on an H100 than all of them)
-            energy, grad, elements = self._potential(X, self._near(X, pairs, ctx), ctx)
+            # the last sweep's candidates hold every pair within d̂ of X (the sweep ended there)
+            energy, grad, elements = self._potential(X, pairs, ctx)
             p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
             mass = None if cfg.static else self.mass[free]
             active = self._matrices.prepare(elements, ctx.dof, free.numel())
@@ -899,13 +902,13 @@ class SolverCloth:
     def _potential(
         self,
         X: torch.Tensor,
-        near: _Pairs,
+        candidates: _Pairs,
         ctx: _StepContext,
         project: bool = True,
         parts: dict[str, torch.Tensor] | None = None,
     ):
         """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (:meth:`_energy` is
-        ``E`` alone).
+        ``E`` alone). ``candidates`` may be any superset of the contact pairs within ``d̂`` of ``X``.
 
         The element Hessians are to be PSD-filtered as they are assembled (:class:`_Element`), unless ``project`` is
         False (friction's are PSD by construction).
@@ -957,20 +960,23 @@ class SolverCloth:
         add(self.faces, membrane, dt2, "membrane", "none" if in_kernel else elastic_projection)
         bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
         add(self.hinges, bending, dt2, "bending", elastic_projection)
-        if near.pt.shape[0] or near.ee.shape[0]:
-            # Derivatives only for the active pairs (within d̂, so of positive energy), which the energy-only kernels
-            # pick (one read from the device): on skirt7271 walking they are a tenth of the candidates near X. The
-            # others would add nothing to the gradient and zero blocks to the matrix.
+        if candidates.pt.shape[0] or candidates.ee.shape[0]:
+            # Derivatives only for the active pairs (within d̂), which the distance-only kernels pick, with the pairs
+            # within REACH · d̂ that a pattern miss grows the sparsity pattern by (one read from the device for both).
+            # On skirt7271 walking the active pairs are a tenth of those whose boxes lie within d̂ of X.
             dhat2 = cfg.contact_distance**2
-            values = e.contact_value(X, near.pt, near.ee, near.ee_eps, dhat2, ctx.kappa)
-            counts = torch.stack([(value != 0.0).sum() for value in values]).tolist()
-            pt_pick, ee_pick = (
-                torch.nonzero_static(value != 0.0, size=count).squeeze(1)
-                for value, count in zip(values, counts, strict=True)
+            c = candidates
+            masks = [
+                mask
+                for d in (cloth.point_triangle_distance_value(X, c.pt), cloth.edge_edge_distance_value(X, c.ee))
+                for mask in (d < dhat2, d < REACH**2 * dhat2)
+            ]
+            counts = torch.stack([mask.sum() for mask in masks]).tolist()
+            pt_active, pt_reach, ee_active, ee_reach = (
+                torch.nonzero_static(mask, size=count).squeeze(1) for mask, count in zip(masks, counts, strict=True)
             )
-            pt_active, ee_active = near.pt[pt_pick], near.ee[ee_pick]
-            pt, ee = e.contact(X, pt_active, ee_active, near.ee_eps[ee_pick], dhat2, ctx.kappa, project=False)
-            for index, reach, terms in ((pt_active, near.pt, pt), (ee_active, near.ee, ee)):
+            pt, ee = e.contact(X, c.pt[pt_active], c.ee[ee_active], c.ee_eps[ee_active], dhat2, ctx.kappa)
+            for index, reach, terms in ((c.pt[pt_active], c.pt[pt_reach], pt), (c.ee[ee_active], c.ee[ee_reach], ee)):
                 add(index, terms, dt2, "contact", "clamp" if project else "none", reach=reach)
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
