@@ -34,6 +34,8 @@ __all__ = [
 def _terms(energy_fn, q: torch.Tensor, *params: torch.Tensor):
     """Energy ``[N]``, gradient ``[N, k, 3]`` and Hessian ``[N, 3k, 3k]`` of ``energy_fn(q_i, *params_i)``."""
     n, k = q.shape[0], q.shape[1]
+    if n == 0:  # vmap cannot trace an empty batch
+        return q.new_zeros(0), q.new_zeros(0, k, 3), q.new_zeros(0, 3 * k, 3 * k)
     energy = vmap(energy_fn)(q, *params)
     g = vmap(grad(energy_fn))(q, *params)
     h = vmap(hessian(energy_fn))(q, *params).reshape(n, 3 * k, 3 * k)

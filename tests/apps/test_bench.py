@@ -24,6 +24,17 @@ def test_copy_workloads_write_complete_records(device, tmp_path):
         assert r["params"]["elements"] == 1 << 20
 
 
+def test_cloth_workloads_run_with_their_reference(device):
+    """The garment workloads at smoke size, the sheet's reference (the solver on the autograd element energies)
+    included: its steps see contacts of one kind only, which the references must take."""
+    records = bench.main(
+        ["--workload", "cloth_step_large,cloth_step", "--device", device, "--size", "smoke", "--reps", "2"]
+    )
+    for r in records:
+        assert r["median_s"] > 0 and r["unit"] == "frames/s"
+    assert records[0]["reference_median_s"] > 0
+
+
 def test_list_names_every_workload(capsys):
     bench.main(["--list"])
     out = capsys.readouterr().out

@@ -448,6 +448,21 @@ def test_contact_energy_matches_ipctk(device):
         assert a.energy[k].item() == pytest.approx(expect, rel=1e-8)
 
 
+def test_contact_terms_of_no_pairs_are_empty_like_the_reference(device):
+    """The solver passes only the active pairs, so one kind often has none: kernels and references alike give empty
+    energies ``[0]``, gradients ``[0, 4, 3]`` and Hessians ``[0, 12, 12]``."""
+    dhat, kappa = 1e-4, 1e3
+    _, _, x, _, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
+    kernel = _host(cloth.contact_energy(_dev(x), _dev(pt_pairs[:0]), _dev(ee_pairs[:1]), _dev(eps_x[:1]), dhat, kappa))
+    reference = (
+        ref.point_triangle_barrier(x, pt_pairs[:0], dhat, kappa),
+        ref.edge_edge_barrier(x, ee_pairs[:0], eps_x[:0], dhat, kappa),
+    )
+    for got in (kernel[0], *reference):
+        assert [tuple(t.shape) for t in got] == [(0,), (0, 4, 3), (0, 12, 12)]
+    assert kernel[1].energy.shape == (1,)
+
+
 def test_contact_energy_matches_reference_and_finite_differences(device):
     dhat, kappa = 1e-4, 1e3
     pt, ee, x, rest, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
