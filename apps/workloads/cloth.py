@@ -19,21 +19,27 @@ through :func:`kernels.backend.launch` and fewer reads from the device (one per 
 iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6 ms, three runs). With phase times from
 CUDA events and the reads of an iteration merged: 100.0-102.0 ms against 110.7 ms. With the element Hessians
 PSD-filtered by cuSOLVER's batched Jacobi eigensolver (:mod:`kernels.cusolver`): 88.4-101.4 ms against 125.0 ms, and
-this benchmark 103.0 ms against 133.8 ms. Phases over those frames (GPU time between CUDA events): 47 % assembly
-(element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves (factorisation and solve), 19 %
-candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the Jacobi filter a Newton
-iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it the factorisation), 2.3
-ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the rest in about 390 small
-kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step, which compiles the
-kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged
-reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 %
-in the broad phase.
+this benchmark 103.0 ms against 133.8 ms. With the contact derivatives taken for the active pairs only (a tenth of the
+candidates near X), the barrier kernels went from 0.94 to 0.70 ms per Newton iteration and the GPU's kernel time from
+6.57 to 6.15 ms (CUPTI, frames 5-9), but the wall time did not move beyond the machine's noise (this benchmark 97.8 and
+104.0 ms): the loop is bound by the host's launches. Phases over those frames (GPU time between CUDA events): 47 %
+assembly (element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves (factorisation and
+solve), 19 % candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the Jacobi filter a
+Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it the
+factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the rest in
+about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step, which
+compiles the kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before
+the merged reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in
+SuperLU, 8 % in the broad phase.
 
-``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS; measured
-before the merged reads and the Jacobi filter): 824.3 ms per frame (1.21 frames/s; 929.6 ms with the COO assembly; 5.10
-s with block-Jacobi CG, which needed thousands of iterations per solve), 5.7x the reference; 50 Newton iterations and
-7119 contacts on the last step, whose time went 63 % to assembly, 24 % to the solves, 9 % to the broad phase and 4 % to
-the line search.
+``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
+449.4 ms per frame (2.23 frames/s), 7.4x the reference (3.34 s); 824.3 ms before the merged reads, the Jacobi filter
+and the contact derivatives of the active pairs only (929.6 ms with the COO assembly; 5.10 s with block-Jacobi CG,
+which needed thousands of iterations per solve). The default 10 repetitions reach the frames where the sheet lies on
+the sphere: median 3.17 s per frame (0.32-5.76 s), about the reference's 3.31 s, since the solver's own work, not the
+element energies, then dominates. Measured before those changes, 3 repetitions: 50 Newton iterations and 7119
+contacts on the last step, whose time went 63 % to assembly, 24 % to the solves, 9 % to the broad phase and 4 % to the
+line search.
 """
 
 from __future__ import annotations
