@@ -975,8 +975,9 @@ class SolverCloth:
             pt_active, pt_reach, ee_active, ee_reach = (
                 torch.nonzero_static(mask, size=count).squeeze(1) for mask, count in zip(masks, counts, strict=True)
             )
-            pt, ee = e.contact(X, c.pt[pt_active], c.ee[ee_active], c.ee_eps[ee_active], dhat2, ctx.kappa)
-            for index, reach, terms in ((c.pt[pt_active], c.pt[pt_reach], pt), (c.ee[ee_active], c.ee[ee_reach], ee)):
+            pt_pairs, ee_pairs = c.pt[pt_active], c.ee[ee_active]
+            pt, ee = e.contact(X, pt_pairs, ee_pairs, c.ee_eps[ee_active], dhat2, ctx.kappa)
+            for index, reach, terms in ((pt_pairs, c.pt[pt_reach], pt), (ee_pairs, c.ee[ee_reach], ee)):
                 add(index, terms, dt2, "contact", "clamp" if project else "none", reach=reach)
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
