@@ -1153,8 +1153,8 @@ class _Element(NamedTuple):
     hess: torch.Tensor  # [N, 3k, 3k] Hessians, unscaled and unfiltered
     scale: float  # factor on each Hessian (Δt²)
     projection: str  # PSD filter: "none", "clamp" (eigenvalues at least zero) or "abs" (their absolute values)
-    reach: torch.Tensor | None  # [M, k] the candidates the elements were picked from (contacts): the pattern grows
-    # by all their blocks, so that the pairs that come within d̂ later seldom change it
+    reach: torch.Tensor | None  # [M, k] contacts: the candidates within REACH · d̂, the active ones among them; a
+    # pattern miss grows the pattern by all their blocks, so that pairs that come within d̂ later seldom change it
 
 
 class _Matrix(NamedTuple):
@@ -1184,8 +1184,8 @@ class _NewtonMatrices:
     The pattern starts as that of the garment's elements (membrane and bending join each vertex to its
     neighbours; body contacts add no block of their own, since only one garment vertex or one garment edge takes
     part). Self-contacts come and go: an assembly that meets a block outside the pattern (a pair of vertices joined
-    for the first time) grows the pattern by every block of the elements at hand and of the contact candidates they
-    were picked from, and assembles again; the Newton loop reads the count of such blocks with its other flags
+    for the first time) grows the pattern by every block of the elements at hand and of the contact candidates within
+    :data:`REACH` · d̂, and assembles again; the Newton loop reads the count of such blocks with its other flags
     (:meth:`scatter` leaves it on the device). cuDSS analyses a pattern anew whenever it changes (60 ms for
     skirt7271 on an H100, against 2 ms for a numeric factorisation), so the pattern outlives the step: it restarts
     from the garment's elements only when the free vertices change or when contacts have doubled it.
@@ -1234,7 +1234,7 @@ class _NewtonMatrices:
         return _Matrix(self.pattern, values), out, missing
 
     def grow(self, elements: list[_Element], dof: torch.Tensor, n: int) -> None:
-        """Add every block of ``elements`` and of the candidates they were picked from to the pattern."""
+        """Add every block of ``elements`` and of their reach (:class:`_Element`) to the pattern."""
         grown = [self.pattern.keys()]
         grown += [assembly.block_keys(e.index if e.reach is None else e.reach, dof, n) for e in elements]
         self._set_pattern(assembly.block_pattern(torch.cat(grown), n))
