@@ -208,20 +208,19 @@ def scatter_hessians(
         raise ValueError(f"p_kin must be [{dof.numel()}, 3] (one row per vertex), got {tuple(p_kin.shape)}")
     if count == 0:
         return
-    wp.launch(
+    backend.launch(
         _scatter_kernel,
-        dim=count,
-        inputs=[
-            backend.warp_arg(index.contiguous()),
-            backend.warp_arg(hess.contiguous()),
-            wp.float64(scale),
-            backend.warp_arg(dof),
-            backend.warp_arg(p_kin.contiguous(), dtype=wp.vec3d),
-            backend.warp_arg(pattern.block_start),
-            backend.warp_arg(pattern.block_col),
-            backend.warp_arg(values),
-            backend.warp_arg(rhs, dtype=wp.vec3d),
-            backend.warp_arg(missing),
+        count,
+        [
+            index.contiguous(),
+            hess.contiguous(),
+            float(scale),
+            dof,
+            (p_kin.contiguous(), wp.vec3d),
+            pattern.block_start,
+            pattern.block_col,
+            values,
+            (rhs, wp.vec3d),
+            missing,
         ],
-        device=backend.warp_device(),
     )

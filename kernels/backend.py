@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import ctypes.util
 import glob
+import math
 import os
 import sys
 
@@ -171,8 +172,8 @@ def synchronize() -> None:
 
 
 def _check_on_device(tensor: torch.Tensor, what: str) -> None:
-    expected = torch_device()
-    if tensor.device.type != expected.type:
+    if tensor.device.type != _require_init():
+        expected = torch_device()
         raise ValueError(
             f"{what}: tensor is on {tensor.device}, kernels run on {expected}; move it with .to('{expected}')"
         )
@@ -208,11 +209,70 @@ def warp_arg(tensor: torch.Tensor, dtype=None):
     return wp.from_torch(tensor, dtype=dtype, requires_grad=False, return_ctype=True)
 
 
-_CONCRETE: dict[tuple, object] = {}
+class _Replay:
+    """A launch of one kernel for one pattern of argument types, recorded once and replayed with fresh tensors.
+
+    The array descriptors live in the recorded command's parameter block: a replay writes each tensor's address,
+    shape and strides into its descriptor in place, so neither ``wp.array`` views nor Warp's argument packing run.
+    """
+
+    __slots__ = ("kernel", "command", "arrays", "dim")
+
+    def __init__(self, kernel):
+        self.kernel = kernel  # the concrete overload
+        self.command = None  # the recorded wp.Launch
+        self.arrays: list[tuple[int, object, int, int]] = []  # (argument, descriptor, element bytes, dtype dims)
+        self.dim = 0
+
+    def record(self, dim: int | tuple[int, ...], args: list, device: str) -> None:
+        import warp as wp
+
+        params = [
+            warp_arg(a) if isinstance(a, torch.Tensor) else warp_arg(*a) if isinstance(a, tuple) else a for a in args
+        ]
+        command = wp.launch(self.kernel, dim=dim, inputs=params, device=device, record_cmd=True)
+        if not isinstance(command, wp.Launch):  # a launch Warp does not record (none, for zero threads)
+            return
+        for i, arg in enumerate(args):
+            if isinstance(arg, (torch.Tensor, tuple)):
+                tensor = arg if isinstance(arg, torch.Tensor) else arg[0]
+                inner = len(getattr(arg[1], "_shape_", ())) if isinstance(arg, tuple) else 0
+                self.arrays.append((i, command.params[i + 1], tensor.element_size(), inner))  # what the launch reads
+        self.command, self.dim = command, dim
+
+    def replay(self, dim: int | tuple[int, ...], args: list) -> None:
+        command, device_type = self.command, _require_init()
+        for i, arg in enumerate(args):
+            if type(arg) is float or type(arg) is int:
+                command.params[i + 1].value = arg  # the ctypes scalar the kernel's argument type packed
+            elif not isinstance(arg, (torch.Tensor, tuple)):
+                command.set_param_at_index(i, arg)
+        for i, descriptor, size, inner in self.arrays:
+            arg = args[i]
+            tensor = arg if isinstance(arg, torch.Tensor) else arg[0]
+            if tensor.device.type != device_type or not tensor.is_contiguous():
+                _check_on_device(tensor, "launch")  # raises
+            shape = tensor.shape
+            ndim = len(shape) - inner
+            descriptor.data = tensor.data_ptr()
+            if ndim == 0:  # the whole tensor is one element of the dtype, as wp.from_torch views it
+                descriptor.shape[0], descriptor.strides[0] = 1, size
+            else:
+                strides = tensor.stride()
+                for d in range(ndim):
+                    descriptor.shape[d] = shape[d]
+                    descriptor.strides[d] = strides[d] * size
+        if dim != self.dim and _threads(dim) > 0:
+            command.set_dim(dim)
+            self.dim = dim
 
 
-def launch(kernel, dim: int, args: list) -> None:
-    """Launch the Warp kernel ``kernel`` over ``dim`` threads on the backend's device, arguments in order.
+_REPLAYS: dict[tuple, _Replay] = {}
+
+
+def launch(kernel, dim: int | tuple[int, ...], args: list) -> None:
+    """Launch the Warp kernel ``kernel`` over ``dim`` threads (a count or a shape) on the backend's device, arguments
+    in order.
 
     Each argument is a torch tensor (viewed as an array of its scalar type), a ``(tensor, warp_dtype)`` pair (viewed
     as an array of that dtype, e.g. ``(x, wp.vec3d)`` for a ``[N, 3]`` float64 tensor), or a scalar (a Python
@@ -220,21 +280,31 @@ def launch(kernel, dim: int, args: list) -> None:
     checks.
 
     ``wp.launch`` of a generic kernel (``Any``-typed arguments) infers the argument types and finds the overload at
-    every launch, and ``wp.array`` views take a constructor each: about 40 µs of host time per launch with six
-    arrays, more than the kernel itself for a few thousand elements. Here the overload is found once per pattern of
-    argument types and the tensors become bare array descriptors: about 15 µs.
+    every launch, makes a ``wp.array`` view of each tensor and packs every argument: about 35 µs of host time with
+    eight arguments, more than the kernel itself for a few thousand elements. Here the first launch of each pattern
+    of argument types is recorded (``wp.launch(..., record_cmd=True)``), and later ones write the tensors' addresses
+    and shapes into the recorded descriptors and replay it (:class:`_Replay`): about 10 µs.
     """
-    import warp as wp
-
-    key = (kernel, *(_signature(a) for a in args))
-    concrete = _CONCRETE.get(key)
-    if concrete is None:
+    device = warp_device()
+    key = (kernel, device, *(_signature(a) for a in args))
+    replay = _REPLAYS.get(key)
+    if replay is None:
         concrete = kernel
         if kernel.is_generic:
             concrete = kernel.add_overload(kernel.infer_argument_types([_view(a) for a in args]))
-        _CONCRETE[key] = concrete
-    params = [warp_arg(a) if isinstance(a, torch.Tensor) else warp_arg(*a) if isinstance(a, tuple) else a for a in args]
-    wp.launch(concrete, dim=dim, inputs=params, device=warp_device())
+        replay = _REPLAYS[key] = _Replay(concrete)
+    if replay.command is None:
+        replay.record(dim, args, device)
+        if replay.command is None:
+            return
+    else:
+        replay.replay(dim, args)
+    if _threads(dim) > 0:
+        replay.command.launch()
+
+
+def _threads(dim: int | tuple[int, ...]) -> int:
+    return math.prod(dim) if isinstance(dim, tuple) else dim
 
 
 def _signature(arg) -> tuple | type:

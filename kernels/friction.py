@@ -169,24 +169,21 @@ def friction_potential(
     grad = torch.empty(k, 4, 3, dtype=torch.float64, device=device)
     hess = torch.empty(k if hessian else 0, 12, 12, dtype=torch.float64, device=device)
     if k:
-        wp.launch(
+        backend.launch(
             _friction_kernel,
-            dim=k,
-            inputs=[
-                backend.warp_arg(displacement.contiguous(), dtype=wp.vec3d),
-                backend.warp_arg(index.to(torch.int32).contiguous()),
-                backend.warp_arg(weight.contiguous()),
-                backend.warp_arg(projector.contiguous(), dtype=_MAT33D),
-                backend.warp_arg(force.contiguous()),
-                wp.float64(eps),
+            k,
+            [
+                (displacement.contiguous(), wp.vec3d),
+                index.to(torch.int32).contiguous(),
+                weight.contiguous(),
+                (projector.contiguous(), _MAT33D),
+                force.contiguous(),
+                float(eps),
                 1 if hessian else 0,
+                energy,
+                (grad, wp.vec3d),
+                hess,
             ],
-            outputs=[
-                backend.warp_arg(energy),
-                backend.warp_arg(grad, dtype=wp.vec3d),
-                backend.warp_arg(hess),
-            ],
-            device=backend.warp_device(),
         )
     return energy, grad, hess if hessian else None
 

@@ -27,6 +27,14 @@ def _axpy(a: Any, x: wp.array(dtype=Any), y: wp.array(dtype=Any), out: wp.array(
     out[i] = a * x[i] + y[i]
 
 
+@wp.kernel
+def _scaled_rows(
+    index: wp.array2d(dtype=wp.int32), x: wp.array(dtype=wp.vec3d), a: wp.float64, out: wp.array2d(dtype=wp.vec3d)
+):
+    i, j = wp.tid()
+    out[i, j] = a * x[index[i, j]]
+
+
 def test_taichi_and_warp_share_one_tensor(device):
     x = torch.arange(1000, dtype=torch.float32, device=backend.torch_device())
     pointer = x.data_ptr()
@@ -82,6 +90,22 @@ def test_launch_takes_tensors_vector_views_and_scalars(device, dtype):
     torch.testing.assert_close(flat, y.view(-1) - x.view(-1), rtol=0, atol=0)
     with pytest.raises(ValueError, match="contiguous"):
         backend.launch(_axpy, 7, [scalar(2.0), (x.t(), vec3), (y, vec3), (out, vec3)])
+
+
+def test_replayed_launches_read_each_calls_tensors_shapes_and_scalars(device):
+    """Later launches of one pattern of argument types replay the first one's recorded command: each must see its
+    own tensors (addresses, shapes, 2-d strides), scalars and thread count, and zero threads must run nothing."""
+    g = torch.Generator().manual_seed(1)
+    cases = [(5, 4, 2, 0.5), (0, 3, 1, 9.0), (9, 6, 3, -2.0), (9, 6, 3, 3.0), (2, 11, 5, 1.25)]
+    for rows, points, width, a in cases:
+        x = torch.randn(points, 3, generator=g, dtype=torch.float64).to(backend.torch_device())
+        index = torch.randint(0, points, (rows, width), generator=g, dtype=torch.int32).to(x.device)
+        out = torch.full((rows, width, 3), 7.0, dtype=torch.float64, device=x.device)
+        backend.launch(_scaled_rows, (rows, width), [index, (x, wp.vec3d), a, (out, wp.vec3d)])
+        torch.testing.assert_close(out, a * x[index.long()], rtol=0, atol=0)
+    if device == "cuda":
+        with pytest.raises(ValueError, match="move it"):
+            backend.launch(_scaled_rows, (rows, width), [index.cpu(), (x, wp.vec3d), a, (out, wp.vec3d)])
 
 
 def test_unknown_device_names_the_valid_ones():
