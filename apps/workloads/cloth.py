@@ -22,15 +22,17 @@ PSD-filtered by cuSOLVER's batched Jacobi eigensolver (:mod:`kernels.cusolver`):
 this benchmark 103.0 ms against 133.8 ms. With the contact derivatives taken for the active pairs only (a tenth of the
 candidates near X), the barrier kernels went from 0.94 to 0.70 ms per Newton iteration and the GPU's kernel time from
 6.57 to 6.15 ms (CUPTI, frames 5-9), but the wall time did not move beyond the machine's noise (this benchmark 97.8 and
-104.0 ms): the loop is bound by the host's launches. Phases over those frames (GPU time between CUDA events): 47 %
-assembly (element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves (factorisation and
-solve), 19 % candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the Jacobi filter a
-Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it the
-factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the rest in
-about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step, which
-compiles the kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before
-the merged reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in
-SuperLU, 8 % in the broad phase.
+104.0 ms): the loop is bound by the host's launches. With each Warp launch recorded once and replayed
+(:func:`kernels.backend.launch`, about half the host time per launch), on a faster H100, three interleaved runs each:
+74.1 ms per frame (9.15 ms per Newton iteration) against 82.3 ms (10.16 ms). Phases over those frames (GPU time between
+CUDA events): 47 % assembly (element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves
+(factorisation and solve), 19 % candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the
+Jacobi filter a Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it
+the factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the
+rest in about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step,
+which compiles the kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s
+before the merged reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it),
+41 % in SuperLU, 8 % in the broad phase.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
 449.4 ms per frame (2.23 frames/s), 7.4x the reference (3.34 s); 824.3 ms before the merged reads, the Jacobi filter
