@@ -237,7 +237,9 @@ class _Replay:
             if isinstance(arg, (torch.Tensor, tuple)):
                 tensor = arg if isinstance(arg, torch.Tensor) else arg[0]
                 inner = len(getattr(arg[1], "_shape_", ())) if isinstance(arg, tuple) else 0
-                self.arrays.append((i, command.params[i + 1], tensor.element_size(), inner))  # what the launch reads
+                descriptor = command.params[i + 1]  # what the launch reads
+                descriptor._ref = descriptor._gradref = None  # the command outlives this call's tensors
+                self.arrays.append((i, descriptor, tensor.element_size(), inner))
         self.command, self.dim = command, dim
 
     def replay(self, dim: int | tuple[int, ...], args: list) -> None:

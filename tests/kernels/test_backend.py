@@ -1,3 +1,5 @@
+import gc
+import weakref
 from typing import Any
 
 import pytest
@@ -106,6 +108,18 @@ def test_replayed_launches_read_each_calls_tensors_shapes_and_scalars(device):
     if device == "cuda":
         with pytest.raises(ValueError, match="move it"):
             backend.launch(_scaled_rows, (rows, width), [index.cpu(), (x, wp.vec3d), a, (out, wp.vec3d)])
+
+
+def test_recorded_and_replayed_launches_keep_no_tensor_alive(device):
+    for _ in range(2):  # recorded, then replayed
+        x = torch.ones(5, dtype=torch.float32, device=backend.torch_device())
+        alive = weakref.ref(x)
+        backend.launch(_double, 5, [x])
+        backend.synchronize()
+        assert x.tolist() == [2.0] * 5
+        del x
+        gc.collect()
+        assert alive() is None
 
 
 def test_unknown_device_names_the_valid_ones():
