@@ -7,9 +7,15 @@ free (an unknown of the solve) or kinematic (a prescribed displacement ``p_j``):
 
 :func:`scatter_hessians` does it in one Warp kernel launch per element kind: a thread takes one element and adds
 each of its 3×3 blocks atomically to the values of a fixed block pattern (:class:`BlockPattern`, found by a binary
-search of the block row), or pushes it to the right-hand side. A block that the pattern lacks is counted, not
-written: the caller grows the pattern and assembles again. This replaces the COO indexing, sorting and summing of
-an assembly in torch (about 40 tensor operations per matrix, each a launch on a GPU).
+search of the block row), or pushes it to the right-hand side. This replaces the COO indexing, sorting and summing
+of an assembly in torch (about 40 tensor operations per matrix, each a launch on a GPU).
+
+A block ``B = H_ij`` that the pattern lacks is counted and bounded instead of written: ``‖B‖_F I`` goes to the
+diagonal block of row ``i`` (and, from ``H_ji``, to that of ``j``). Since ``[[sI, −B], [−Bᵀ, sI]] ⪰ 0`` for
+``s ≥ ‖B‖₂``, the matrix assembled is the exact one plus a PSD matrix: it stays SPD where the exact one is, and its
+Newton direction is still a descent direction, only a shorter one along the missing couplings. The caller may use
+it as it is and grow the pattern later (a pattern change costs a sparse direct solver a new analysis), or grow the
+pattern now and assemble again.
 
 The values array holds every stored entry of both triangles in scalar CSR order (``crow``/``col`` of the pattern),
 which is what cuDSS, SciPy and ``torch.sparse_csr_tensor`` take.
@@ -152,8 +158,15 @@ def _scatter_kernel(
                     wp.atomic_sub(rhs, row, block * p_kin[vertex])
                 else:
                     at = _find_block(block_start, block_col, row, col)
-                    if at < 0:
+                    if at < 0:  # bounded by its norm on the diagonal (row == col is always in the pattern)
                         wp.atomic_add(missing, 0, 1)
+                        bound = wp.sqrt(wp.ddot(block, block))
+                        at = _find_block(block_start, block_col, row, row)
+                        first = block_start[row]
+                        origin = 9 * first + 3 * (at - first)
+                        length = 3 * (block_start[row + 1] - first)
+                        for x in range(3):
+                            wp.atomic_add(values, origin + x * length + x, bound)
                     else:
                         # block row ``row`` holds scalar rows 3 row + x, each 3 · (its block count) long
                         first = block_start[row]
@@ -181,7 +194,8 @@ def scatter_hessians(
         pattern: the matrix's :class:`BlockPattern` over ``n`` free vertices.
         values: ``[9K]`` float64 values in ``pattern``'s scalar CSR order; accumulated into.
         rhs: ``[n, 3]`` float64 right-hand side; receives ``−scale H_ij p_j`` for free ``i``, kinematic ``j``.
-        missing: ``[1]`` int32; counts the free–free blocks that ``pattern`` lacks (those are not added).
+        missing: ``[1]`` int32; counts the free–free blocks that ``pattern`` lacks (each is bounded by its
+            Frobenius norm on its row's diagonal instead of added: see the module's notes).
         index: ``[N, k]`` int32 vertex indices of the elements.
         hess: ``[N, 3k, 3k]`` float64 element Hessians, vertex-major (``3 · vertex + axis``).
         dof: ``[V]`` int32 block row of each vertex, ``-1`` for a kinematic one.

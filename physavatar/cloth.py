@@ -586,7 +586,7 @@ class SolverCloth:
             timer.stop("assemble")
             for checked in (False, True):
                 timer.start()
-                if checked:  # the pattern missed blocks, or the factorisation failed: again, waiting on each
+                if checked:  # the factorisation failed: grow the pattern now, then again, waiting on each
                     matrix, rhs = self._matrices.complete(active, elements, -grad[free], ctx.dof, p_kin, mass)
                     missing = torch.zeros(1, dtype=torch.int32, device=X.device)
                 else:
@@ -604,7 +604,9 @@ class SolverCloth:
                 flags = [missing[0], (p_kin == 0).all(), self._covers(cover, X, p), step, energy]
                 read = torch.cat([torch.stack([f.to(F64) for f in flags]), _counts(cover.pairs, *keep).to(F64)])
                 read = read.tolist()  # one read from the device
-                if read[0] == 0.0 and self._solved():
+                if self._solved():
+                    if read[0] != 0.0:  # blocks outside the pattern, bounded on the diagonal: grow it next step
+                        self._matrices.defer(elements, ctx.dof, free.numel())
                     break
             _, reached, covered, step, energy, *counts = read
             reached = reached == 1.0
@@ -1184,11 +1186,14 @@ class _NewtonMatrices:
     The pattern starts as that of the garment's elements (membrane and bending join each vertex to its
     neighbours; body contacts add no block of their own, since only one garment vertex or one garment edge takes
     part). Self-contacts come and go: an assembly that meets a block outside the pattern (a pair of vertices joined
-    for the first time) grows the pattern by every block of the elements at hand and of the contact candidates within
-    :data:`REACH` · d̂, and assembles again; the Newton loop reads the count of such blocks with its other flags
-    (:meth:`scatter` leaves it on the device). cuDSS analyses a pattern anew whenever it changes (60 ms for
-    skirt7271 on an H100, against 2 ms for a numeric factorisation), so the pattern outlives the step: it restarts
-    from the garment's elements only when the free vertices change or when contacts have doubled it.
+    for the first time) bounds it on the diagonal (:mod:`kernels.assembly`: the matrix stays SPD, its direction a
+    descent direction), and the Newton loop, which reads the count of such blocks with its other flags, keeps that
+    matrix and defers the growth (:meth:`defer`): at the next step's :meth:`prepare` the pattern grows by every
+    block of the elements at hand and of the contact candidates within :data:`REACH` · d̂. cuDSS analyses a pattern
+    anew whenever it changes (60 ms for skirt7271 on an H100, against 2 ms for a numeric factorisation; 550 ms
+    against 20 ms for the 150k DOFs of a 50k-vertex sheet), so the pattern grows at most once a step and outlives
+    the step: it restarts from the garment's elements only when the free vertices change or when contacts have
+    doubled it.
 
     Each element kind's Hessians are PSD-filtered by one batched eigensolver call (:func:`kernels.cloth.project_psd`),
     then scattered by one Warp launch (:mod:`kernels.assembly`).
@@ -1200,6 +1205,7 @@ class _NewtonMatrices:
         self._mass_slots: torch.Tensor | None = None
         self.dof: torch.Tensor | None = None
         self.elastic_blocks = 0
+        self._pending: list[torch.Tensor] = []  # block keys that the next step's pattern takes (:meth:`defer`)
 
     def _set_pattern(self, pattern: assembly.BlockPattern) -> None:
         self.pattern = pattern
@@ -1214,6 +1220,9 @@ class _NewtonMatrices:
                 keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
                 self._set_pattern(assembly.block_pattern(keys, n))
                 self.elastic_blocks = self.pattern.block_col.numel()
+            elif self._pending:
+                self._set_pattern(assembly.block_pattern(torch.cat([self.pattern.keys(), *self._pending]), n))
+            self._pending = []
             self.dof = dof
         return _filtered(elements)
 
@@ -1235,9 +1244,13 @@ class _NewtonMatrices:
 
     def grow(self, elements: list[_Element], dof: torch.Tensor, n: int) -> None:
         """Add every block of ``elements`` and of their reach (:class:`_Element`) to the pattern."""
-        grown = [self.pattern.keys()]
-        grown += [assembly.block_keys(e.index if e.reach is None else e.reach, dof, n) for e in elements]
-        self._set_pattern(assembly.block_pattern(torch.cat(grown), n))
+        self._set_pattern(assembly.block_pattern(torch.cat([self.pattern.keys(), *_keys(elements, dof, n)]), n))
+
+    def defer(self, elements: list[_Element], dof: torch.Tensor, n: int) -> None:
+        """:meth:`grow` at the next step's :meth:`prepare` (if the pattern does not restart then), not now. The
+        garment's elements are in the pattern already: only the contacts' and friction's blocks are kept."""
+        others = [e for e in elements if not any(e.index is index for index in self.elastic)]
+        self._pending = [torch.unique(torch.cat([*self._pending, *_keys(others, dof, n)]))]
 
     def assemble(self, elements: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
         """``(_Matrix, rhs [n, 3])`` of :meth:`scatter`, the pattern grown until it holds every block."""
@@ -1251,6 +1264,11 @@ class _NewtonMatrices:
             if int(missing) == 0:
                 return matrix, out
             self.grow(elements, dof, rhs.shape[0])
+
+
+def _keys(elements: list[_Element], dof: torch.Tensor, n: int) -> list[torch.Tensor]:
+    """The block keys of ``elements`` and of their reach (:class:`_Element`)."""
+    return [assembly.block_keys(e.index if e.reach is None else e.reach, dof, n) for e in elements]
 
 
 def _filtered(elements: list[_Element]) -> list[_Element]:

@@ -59,25 +59,39 @@ def test_scatter_matches_the_dense_reference(device):
     torch.testing.assert_close(rhs, expected_rhs, rtol=0, atol=1e-14 * expected_rhs.abs().max())
 
 
-def test_missing_blocks_are_counted_and_the_rest_added(device):
+def test_missing_blocks_are_counted_and_bounded_on_the_diagonal(device):
+    """A block the pattern lacks adds its Frobenius norm to its row's diagonal instead: the other entries are exact,
+    and the matrix exceeds the exact one by a PSD matrix (symmetric PSD element Hessians)."""
     dof, p_kin, elements, n = _problem(device, seed=2)
-    (tri_index, tri_hess), (quad_index, quad_hess) = elements
+    elements = [[index, hess @ hess.transpose(1, 2)] for index, hess in elements]  # symmetric PSD
+    (tri_index, _), (quad_index, quad_hess) = elements
     pattern = assembly.block_pattern(assembly.block_keys(tri_index, dof, n), n)  # the quads' blocks partly absent
     known = set(pattern.keys().tolist())
-    quad_keys = assembly.block_keys(quad_index, dof, n).tolist()
-    absent = sum(key not in known for key in quad_keys)
+    bound = torch.zeros(n, dtype=F64)
+    absent = 0
+    for index, hess in zip(quad_index.tolist(), quad_hess.cpu(), strict=True):
+        for a, va in enumerate(index):
+            for b, vb in enumerate(index):
+                row, col = int(dof[va]), int(dof[vb])
+                if row >= 0 and col >= 0 and row * n + col not in known:
+                    absent += 1
+                    bound[row] += 0.5 * hess[3 * a : 3 * a + 3, 3 * b : 3 * b + 3].norm()
     assert absent > 0
     values, _, missing = _assemble(pattern, elements, dof, p_kin)
     assert missing == absent
-    grown = assembly.block_pattern(assembly.block_keys(quad_index, dof, n), n)
-    full, _, _ = _assemble(
-        assembly.block_pattern(torch.cat([pattern.keys(), grown.keys()]), n), elements, dof, p_kin
-    )
     dense = _dense(pattern, values)
-    present = _dense(pattern, torch.ones_like(values)) != 0
     expected, _ = reference.newton_matrix(n, [(i, h, 0.5) for i, h in elements], dof, p_kin)
-    torch.testing.assert_close(dense[present], expected[present], rtol=0, atol=1e-12 * expected.abs().max())
-    assert full.numel() > values.numel()
+    present = _dense(pattern, torch.ones_like(values)) != 0
+    diagonal = torch.eye(3 * n, dtype=torch.bool, device=device)
+    tol = 1e-12 * expected.abs().max()
+    torch.testing.assert_close(dense[present & ~diagonal], expected[present & ~diagonal], rtol=0, atol=tol)
+    torch.testing.assert_close(
+        dense.diagonal() - expected.diagonal(), bound.repeat_interleave(3).to(device), rtol=0, atol=tol
+    )
+    assert float(torch.linalg.eigvalsh(dense - expected).min()) > -tol
+    grown = assembly.block_pattern(torch.cat([pattern.keys(), assembly.block_keys(quad_index, dof, n)]), n)
+    full, _, missing = _assemble(grown, elements, dof, p_kin)
+    assert missing == 0 and full.numel() > values.numel()
 
 
 def test_block_pattern_holds_every_diagonal_block_and_marks_it(device):
