@@ -30,9 +30,11 @@ CUDA events): 47 % assembly (element Hessians, their batched eigen-filtering, th
 Jacobi filter a Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it
 the factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the
 rest in about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step,
-which compiles the kernels. On this project's 2-core CPU (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s
-before the merged reads, 4.47 s with the COO assembly), half of it in assembly (LAPACK's eigen-filtering most of it),
-41 % in SuperLU, 8 % in the broad phase.
+which compiles the kernels; with the float64 overloads of the generic kernels declared at import, it builds them all,
+where the first contact used to rebuild the module (a 25 s step, and phase shares of 99 % assembly, in this
+benchmark on a fresh H100: now 0.16 s at most, 99.0 ms median on a slower H100). On this project's 2-core CPU
+(``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged reads, 4.47 s with the COO assembly),
+half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
 
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
 449.4 ms per frame (2.23 frames/s), 7.4x the reference (3.34 s); 824.3 ms before the merged reads, the Jacobi filter
