@@ -572,14 +572,17 @@ class SolverCloth:
             timer.stop("friction")
 
         # Each iteration reads the device as little as it can: the flags below (convergence, cover, the sweep's
-        # candidate counts, pattern misses) in one read, the CCD bound with the first line-search trial in another.
+        # candidate counts, pattern misses) in one read, the CCD bound with the first line-search trial and the active
+        # contacts there (the next iteration's, when the trial holds) in another.
         converged = False
         iterations = 0
+        near = None  # the active contacts at X, when the line search has read them already
         for _ in range(cfg.max_newton_iterations):
             iterations += 1
             timer.start()
             # the last sweep's candidates hold every pair within d̂ of X (the sweep ended there)
-            energy, grad, elements = self._potential(X, pairs, ctx)
+            energy, grad, elements = self._potential(X, pairs, ctx, near=near)
+            near = None
             p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
             mass = None if cfg.static else self.mass[free]
             active = self._matrices.prepare(elements, ctx.dof, free.numel())
@@ -625,10 +628,19 @@ class SolverCloth:
             bound = self._ccd_bound(X, p, pairs)
             timer.stop("ccd")
             timer.start()
+            trial = None
             if reached:
-                # the first trial is the CCD bound itself, read with it
-                alpha, trial_energy = torch.stack([bound, self._energy(X + bound * p, pairs, ctx)]).tolist()
+                # the first trial is the CCD bound itself, read with it and with the active contacts there, which
+                # the next iteration takes if the trial holds
+                trial = X + bound * p
+                has_pairs = bool(pairs.pt.shape[0] or pairs.ee.shape[0])
+                masks, counts = self._near_masks(trial, pairs) if has_pairs else ([], bound.new_zeros(0))
+                read = torch.cat([torch.stack([bound, self._energy(trial, pairs, ctx)]), counts.to(F64)]).tolist()
+                alpha, trial_energy, *counts = read
+                if trial_energy <= energy:
+                    near = (masks, [int(c) for c in counts]) if has_pairs else None
                 while alpha > 1e-12 and not trial_energy <= energy:
+                    trial = None
                     alpha *= 0.5
                     trial_energy = float(self._energy(X + alpha * p, pairs, ctx))  # zero beyond d̂: no filtering
             else:
@@ -636,8 +648,8 @@ class SolverCloth:
             timer.stop("line_search")
             if alpha <= 1e-12:
                 break
-            X = X + alpha * p
-            if alpha == 1.0:
+            X = X + alpha * p if trial is None else trial
+            if alpha == 1.0 and not reached:  # once reached, the kinematic vertices are at their targets exactly
                 X[kinematic] = target[kinematic]
 
         state_out.x = X[:v].clone()
@@ -908,9 +920,12 @@ class SolverCloth:
         ctx: _StepContext,
         project: bool = True,
         parts: dict[str, torch.Tensor] | None = None,
+        near: tuple[list[torch.Tensor], list[int]] | None = None,
     ):
         """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (:meth:`_energy` is
-        ``E`` alone). ``candidates`` may be any superset of the contact pairs within ``d̂`` of ``X``.
+        ``E`` alone). ``candidates`` may be any superset of the contact pairs within ``d̂`` of ``X``; ``near``, when
+        given, is :meth:`_near_masks` of ``X`` and ``candidates`` with its counts read (the line search reads them
+        with its first trial, which is usually the next ``X``).
 
         The element Hessians are to be PSD-filtered as they are assembled (:class:`_Element`), unless ``project`` is
         False (friction's are PSD by construction).
@@ -923,29 +938,28 @@ class SolverCloth:
         cfg, dt2 = self.config, ctx.dt * ctx.dt
         v = self.vertex_count
         x = X[:v].contiguous()
-        grad = torch.zeros_like(X)
+        # every element term is scaled by Δt²: their energies and gradients are summed unscaled, then scaled once
+        term_energies: list[torch.Tensor] = []
+        term_grad = torch.zeros_like(X)
         elements: list[_Element] = []
         free_mask = ~ctx.kinematic[:v]
-        energy = torch.zeros((), dtype=F64, device=X.device)
 
-        def add(index, terms, scale: float, name: str, projection: str = "none", reach=None) -> None:
-            nonlocal energy
-            energy = energy + scale * terms.energy.sum()
-            grad.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
+        def add(index, terms, name: str, projection: str = "none", reach=None) -> None:
+            term_energies.append(terms.energy)
+            term_grad.index_add_(0, index.reshape(-1), terms.grad.reshape(-1, 3))
             if index.shape[0] or reach is not None and reach.shape[0]:
-                elements.append(_Element(index, terms.hess, scale, projection, reach))
+                elements.append(_Element(index, terms.hess, dt2, projection, reach))
             if parts is not None:
                 part = parts.setdefault(name, torch.zeros_like(X))
-                part.index_add_(0, index.reshape(-1), scale * terms.grad.reshape(-1, 3))
+                part.index_add_(0, index.reshape(-1), dt2 * terms.grad.reshape(-1, 3))
 
         if cfg.static:
-            energy = energy - dt2 * (self.mass[:, None] * self.gravity * x).sum()
+            energy = -dt2 * (self.mass[:, None] * self.gravity * x).sum()
             inertia = -dt2 * self.mass[:, None] * self.gravity
         else:
             r = (x - ctx.x_hat) * free_mask[:, None]
-            energy = energy + 0.5 * (self.mass[:, None] * r * r).sum()
+            energy = 0.5 * (self.mass[:, None] * r * r).sum()
             inertia = self.mass[:, None] * r
-        grad[:v] += inertia
         if parts is not None:
             parts["inertia"] = torch.zeros_like(X)
             parts["inertia"][:v] = inertia
@@ -959,35 +973,52 @@ class SolverCloth:
             x, self.faces, rest.rest_inv, rest.rest_area, self.membrane_mu, self.membrane_lambda,
             stress_filter=elastic_projection if in_kernel else "none",
         )  # fmt: skip
-        add(self.faces, membrane, dt2, "membrane", "none" if in_kernel else elastic_projection)
+        add(self.faces, membrane, "membrane", "none" if in_kernel else elastic_projection)
         bending = e.bending(x, self.hinges, rest.rest_angle, rest.rest_weight, self.k_bend)
-        add(self.hinges, bending, dt2, "bending", elastic_projection)
+        add(self.hinges, bending, "bending", elastic_projection)
         if candidates.pt.shape[0] or candidates.ee.shape[0]:
             # Derivatives only for the active pairs (within d̂), which the distance-only kernels pick, with the pairs
             # within REACH · d̂ that a pattern miss grows the sparsity pattern by (one read from the device for both).
             # On skirt7271 walking the active pairs are a tenth of those whose boxes lie within d̂ of X.
             dhat2 = cfg.contact_distance**2
             c = candidates
-            masks = [
-                mask
-                for d in (cloth.point_triangle_distance_value(X, c.pt), cloth.edge_edge_distance_value(X, c.ee))
-                for mask in (d < dhat2, d < REACH**2 * dhat2)
-            ]
-            counts = torch.stack([mask.sum() for mask in masks]).tolist()
+            if near is None:
+                masks, counts = self._near_masks(X, c)
+                counts = counts.tolist()
+            else:
+                masks, counts = near
             pt_active, pt_reach, ee_active, ee_reach = (
                 torch.nonzero_static(mask, size=count).squeeze(1) for mask, count in zip(masks, counts, strict=True)
             )
             pt_pairs, ee_pairs = c.pt[pt_active], c.ee[ee_active]
             pt, ee = e.contact(X, pt_pairs, ee_pairs, c.ee_eps[ee_active], dhat2, ctx.kappa)
             for index, reach, terms in ((pt_pairs, c.pt[pt_reach], pt), (ee_pairs, c.ee[ee_reach], ee)):
-                add(index, terms, dt2, "contact", "clamp" if project else "none", reach=reach)
+                add(index, terms, "contact", "clamp" if project else "none", reach=reach)
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
                 X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, True
             )
             index = ctx.friction.index.to(torch.int32)
-            add(index, cloth.ElementTerms(f_energy, f_grad, f_hess), dt2, "friction", "none")  # PSD already
+            add(index, cloth.ElementTerms(f_energy, f_grad, f_hess), "friction", "none")  # PSD already
+        # the element terms scaled once, as :meth:`_energy` sums them
+        energy = energy + dt2 * torch.cat(term_energies).sum()
+        grad = term_grad.mul_(dt2)
+        grad[:v] += inertia
         return energy, grad, elements
+
+    def _near_masks(self, X: torch.Tensor, candidates: _Pairs) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """Masks of ``candidates``' point–triangle pairs within ``d̂`` and within ``REACH · d̂`` at ``X``, then of its
+        edge–edge pairs, by the distance-only kernels, and their counts (``[4]`` on the device, not read)."""
+        dhat2 = self.config.contact_distance**2
+        masks = [
+            mask
+            for d in (
+                cloth.point_triangle_distance_value(X, candidates.pt),
+                cloth.edge_edge_distance_value(X, candidates.ee),
+            )
+            for mask in (d < dhat2, d < REACH**2 * dhat2)
+        ]
+        return masks, torch.stack([mask.sum() for mask in masks])
 
     def _energy(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext) -> torch.Tensor:
         """The incremental potential ``E(X)`` of :meth:`_potential` alone (0-d), from the energy-only kernels: what
