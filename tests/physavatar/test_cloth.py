@@ -310,15 +310,22 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
     if solver is not None:
         assert solver.analyses == 3
 
-    # the Newton loop scatters without reading: the blocks outside the pattern are counted on the device
+    # the Newton loop scatters without reading: the blocks outside the pattern are counted on the device and bounded
+    # on the diagonal (the matrix exceeds the exact one by a PSD term), and the pattern grows at the next step
     fresh, dof, elements = _NewtonMatrices([faces]), dofs([4]), [membrane, contact]
     rhs = torch.randn(8, 3, generator=g, dtype=F64).to(torch_device)
     push = p_kin * (dof < 0)[:, None]
     active = fresh.prepare(elements, dof, 8)
-    assert int(fresh.scatter(active, rhs, dof, push, None)[2]) > 0
-    fresh.grow(elements, dof, 8)
     matrix, out, missing = fresh.scatter(active, rhs, dof, push, None)
     expected, pushed = newton_matrix(8, [(e.index, e.hess, e.scale) for e in elements], dof, push)
-    assert int(missing) == 0
+    assert int(missing) > 0
+    assert float(torch.linalg.eigvalsh(matrix.to_dense() - expected).min()) > -1e-9
+    torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
+    before = fresh.pattern
+    fresh.defer(elements, dof, 8)
+    assert fresh.pattern is before
+    dof = dofs([4])  # the next step, with the same free vertices
+    matrix, out, missing = fresh.scatter(fresh.prepare(elements, dof, 8), rhs, dof, push, None)
+    assert fresh.pattern is not before and int(missing) == 0
     torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
