@@ -160,21 +160,15 @@ def _scatter_kernel(
                     at = _find_block(block_start, block_col, row, col)
                     if at < 0:  # bounded by its norm on the diagonal (row == col is always in the pattern)
                         wp.atomic_add(missing, 0, 1)
-                        bound = wp.sqrt(wp.ddot(block, block))
+                        block = wp.identity(n=3, dtype=wp.float64) * wp.sqrt(wp.ddot(block, block))
                         at = _find_block(block_start, block_col, row, row)
-                        first = block_start[row]
-                        origin = 9 * first + 3 * (at - first)
-                        length = 3 * (block_start[row + 1] - first)
-                        for x in range(3):
-                            wp.atomic_add(values, origin + x * length + x, bound)
-                    else:
-                        # block row ``row`` holds scalar rows 3 row + x, each 3 · (its block count) long
-                        first = block_start[row]
-                        origin = 9 * first + 3 * (at - first)
-                        length = 3 * (block_start[row + 1] - first)
-                        for x in range(3):
-                            for y in range(3):
-                                wp.atomic_add(values, origin + x * length + y, block[x, y])
+                    # block row ``row`` holds scalar rows 3 row + x, each 3 · (its block count) long
+                    first = block_start[row]
+                    origin = 9 * first + 3 * (at - first)
+                    length = 3 * (block_start[row + 1] - first)
+                    for x in range(3):
+                        for y in range(3):
+                            wp.atomic_add(values, origin + x * length + y, block[x, y])
 
 
 def scatter_hessians(

@@ -634,11 +634,11 @@ class SolverCloth:
                 # the next iteration takes if the trial holds
                 trial = X + bound * p
                 has_pairs = bool(pairs.pt.shape[0] or pairs.ee.shape[0])
-                masks, counts = self._near_masks(trial, pairs) if has_pairs else ([], bound.new_zeros(0))
-                read = torch.cat([torch.stack([bound, self._energy(trial, pairs, ctx)]), counts.to(F64)]).tolist()
-                alpha, trial_energy, *counts = read
+                masks, near_counts = self._near_masks(trial, pairs) if has_pairs else ([], bound.new_zeros(0))
+                read = torch.cat([torch.stack([bound, self._energy(trial, pairs, ctx)]), near_counts.to(F64)])
+                alpha, trial_energy, *near_counts = read.tolist()
                 if trial_energy <= energy:
-                    near = (masks, [int(c) for c in counts]) if has_pairs else None
+                    near = (masks, [int(c) for c in near_counts]) if has_pairs else None
                 while alpha > 1e-12 and not trial_energy <= energy:
                     trial = None
                     alpha *= 0.5
