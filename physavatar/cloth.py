@@ -497,6 +497,7 @@ class SolverCloth:
         self._cudss = cudss.SparseSPDSolver(device) if solver == "cudss" else None  # raises where cuDSS cannot load
         self._unchecked = False  # the last solve queued an unchecked cuDSS factorisation (:meth:`_solved`)
         self._matrices = _NewtonMatrices([self.faces, self.hinges])
+        self._loop = _NewtonLoop(self)
         self.linear_solver = solver
         margin = config.candidate_margin
         self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)
@@ -551,7 +552,7 @@ class SolverCloth:
     def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
         cfg = self.config
         X, target, ctx = self._context(state_in, control, dt)
-        v, kinematic, free = self.vertex_count, ctx.kinematic, ctx.free
+        v, kinematic = self.vertex_count, ctx.kinematic
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
         timer = _PhaseTimer(X.device)
 
@@ -571,90 +572,57 @@ class SolverCloth:
             ctx = ctx._replace(friction=self._lagged_friction(X, pairs, ctx))
             timer.stop("friction")
 
-        # Each iteration reads the device as little as it can: the flags below (convergence, cover, the sweep's
-        # candidate counts, pattern misses) in one read, the CCD bound with the first line-search trial and the active
-        # contacts there (the next iteration's, when the trial holds) in another.
+        loop = self._loop
+        loop.begin(X, target, ctx, cover, pairs)
         converged = False
         iterations = 0
-        near = None  # the active contacts at X, when the line search has read them already
-        for _ in range(cfg.max_newton_iterations):
+        while iterations < cfg.max_newton_iterations:
             iterations += 1
             timer.start()
-            # the last sweep's candidates hold every pair within d̂ of X (the sweep ended there)
-            energy, grad, elements = self._potential(X, pairs, ctx, near=near)
-            near = None
-            p_kin = torch.where(kinematic[:, None], target - X, torch.zeros_like(X))
-            mass = None if cfg.static else self.mass[free]
-            active = self._matrices.prepare(elements, ctx.dof, free.numel())
+            assembled = loop.assemble()
             timer.stop("assemble")
             for checked in (False, True):
-                timer.start()
                 if checked:  # the factorisation failed: grow the pattern now, then again, waiting on each
-                    matrix, rhs = self._matrices.complete(active, elements, -grad[free], ctx.dof, p_kin, mass)
-                    missing = torch.zeros(1, dtype=torch.int32, device=X.device)
-                else:
-                    matrix, rhs, missing = self._matrices.scatter(active, -grad[free], ctx.dof, p_kin, mass)
-                timer.stop("assemble")
+                    timer.start()
+                    assembled = loop.complete(assembled)
+                    timer.stop("assemble")
                 timer.start()
-                p_free = self._solve(matrix, rhs.reshape(-1), wait=checked)
+                loop.solve(assembled, wait=checked)
                 timer.stop("solve")
-                p = p_kin.clone()
-                p[free] = p_free.view(-1, 3)
-                timer.start()
-                keep = self._sweep_masks(X, p, cover)
-                timer.stop("broad_phase")
-                step = p_free.abs().max() if p_free.numel() else p_free.new_zeros(())
-                flags = [missing[0], (p_kin == 0).all(), self._covers(cover, X, p), step, energy]
-                read = torch.cat([torch.stack([f.to(F64) for f in flags]), _counts(cover.pairs, *keep).to(F64)])
-                read = read.tolist()  # one read from the device
-                if self._solved():
-                    if read[0] != 0.0:  # blocks outside the pattern, bounded on the diagonal: grow it next step
-                        self._matrices.defer(elements, ctx.dof, free.numel())
-                    break
-            _, reached, covered, step, energy, *counts = read
-            reached = reached == 1.0
-            if reached and step / dt < cfg.newton_tolerance:
+                read = loop.look(assembled, timer)
+                if not self._solved():
+                    continue
+                if read.missing:  # blocks outside the pattern, bounded on the diagonal: grow it next step
+                    loop.defer(assembled)
+                break
+            if read.overflow:  # more active contacts than the buffers hold: the same iteration with larger ones
+                iterations -= 1
+                continue
+            if read.reached and read.step / dt < cfg.newton_tolerance:
                 converged = True
                 break
-            timer.start()
-            if covered == 1.0:
-                pairs = _select(cover.pairs, *keep, [int(c) for c in counts])
-            else:
-                cover = self._cover(X, X + p, ctx, self.candidate_margin)
+            if not read.covered:  # the sweep left the candidates' reach: search along it
+                timer.start()
+                X = loop.positions()
+                cover = self._cover(X, X + loop.direction(), ctx, self.candidate_margin)
                 searches += 1
-                pairs = self._swept(X, p, cover)
-            timer.stop("broad_phase")
-            timer.start()
-            bound = self._ccd_bound(X, p, pairs)
-            timer.stop("ccd")
-            timer.start()
-            trial = None
-            if reached:
-                # the first trial is the CCD bound itself, read with it and with the active contacts there, which
-                # the next iteration takes if the trial holds
-                trial = X + bound * p
-                has_pairs = bool(pairs.pt.shape[0] or pairs.ee.shape[0])
-                masks, near_counts = self._near_masks(trial, pairs) if has_pairs else ([], bound.new_zeros(0))
-                read = torch.cat([torch.stack([bound, self._energy(trial, pairs, ctx)]), near_counts.to(F64)])
-                alpha, trial_energy, *near_counts = read.tolist()
-                if trial_energy <= energy:
-                    near = (masks, [int(c) for c in near_counts]) if has_pairs else None
-                while alpha > 1e-12 and not trial_energy <= energy:
-                    trial = None
+                loop.set_cover(cover)
+                timer.stop("broad_phase")
+                read = loop.look(assembled, timer)
+            alpha = read.alpha
+            if read.reached:
+                # backtrack from the CCD bound on E; every trial lies on the sweep, whose candidates hold its contacts
+                while alpha > 1e-12 and not read.trial_energy <= read.energy:
                     alpha *= 0.5
-                    trial_energy = float(self._energy(X + alpha * p, pairs, ctx))  # zero beyond d̂: no filtering
-            else:
-                alpha = float(bound)
-            timer.stop("line_search")
+                    read = read._replace(trial_energy=loop.trial_energy(alpha, timer))
             if alpha <= 1e-12:
                 break
-            X = X + alpha * p if trial is None else trial
-            if alpha == 1.0 and not reached:  # once reached, the kinematic vertices are at their targets exactly
-                X[kinematic] = target[kinematic]
+            loop.accept(snap=alpha == 1.0 and not read.reached)  # once reached, the kinematic vertices stay there
 
+        X = loop.positions().clone()
         state_out.x = X[:v].clone()
         state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
-        near = self._near(X, pairs, ctx)
+        near = self._near(X, self._swept(X, torch.zeros_like(X), cover), ctx)
         d_body, d_self, contacts = self._min_distances(X, near)
         return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches)
 
@@ -920,12 +888,12 @@ class SolverCloth:
         ctx: _StepContext,
         project: bool = True,
         parts: dict[str, torch.Tensor] | None = None,
-        near: tuple[list[torch.Tensor], list[int]] | None = None,
+        active: tuple[torch.Tensor, torch.Tensor] | None = None,
     ):
         """Incremental potential ``E(X)``, its gradient ``[V + B, 3]`` and the element Hessians (:meth:`_energy` is
-        ``E`` alone). ``candidates`` may be any superset of the contact pairs within ``d̂`` of ``X``; ``near``, when
-        given, is :meth:`_near_masks` of ``X`` and ``candidates`` with its counts read (the line search reads them
-        with its first trial, which is usually the next ``X``).
+        ``E`` alone). ``candidates`` may be any superset of the contact pairs within ``d̂`` of ``X``. ``active``, when
+        given, is :meth:`_active_rows` of ``X`` and ``candidates`` (a fixed number of rows, padded: the Newton loop on
+        CUDA); each contact element's ``reach`` is then its own pairs, not the pairs within ``REACH · d̂``.
 
         The element Hessians are to be PSD-filtered as they are assembled (:class:`_Element`), unless ``project`` is
         False (friction's are PSD by construction).
@@ -978,21 +946,20 @@ class SolverCloth:
         add(self.hinges, bending, "bending", elastic_projection)
         if candidates.pt.shape[0] or candidates.ee.shape[0]:
             # Derivatives only for the active pairs (within d̂), which the distance-only kernels pick, with the pairs
-            # within REACH · d̂ that a pattern miss grows the sparsity pattern by (one read from the device for both).
-            # On skirt7271 walking the active pairs are a tenth of those whose boxes lie within d̂ of X.
+            # within REACH · d̂ that a pattern miss grows the sparsity pattern by. On skirt7271 walking the active
+            # pairs are a tenth of those whose boxes lie within d̂ of X.
             dhat2 = cfg.contact_distance**2
             c = candidates
-            if near is None:
-                masks, counts = self._near_masks(X, c)
-                counts = counts.tolist()
+            if active is None:
+                pt_active, ee_active, pt_reach, ee_reach = self._active_rows(X, c, reach=True)
+                pt_reach, ee_reach = c.pt[pt_reach], c.ee[ee_reach]
             else:
-                masks, counts = near
-            pt_active, pt_reach, ee_active, ee_reach = (
-                torch.nonzero_static(mask, size=count).squeeze(1) for mask, count in zip(masks, counts, strict=True)
-            )
+                pt_active, ee_active = active
             pt_pairs, ee_pairs = c.pt[pt_active], c.ee[ee_active]
+            if active is not None:
+                pt_reach, ee_reach = pt_pairs, ee_pairs
             pt, ee = e.contact(X, pt_pairs, ee_pairs, c.ee_eps[ee_active], dhat2, ctx.kappa)
-            for index, reach, terms in ((pt_pairs, c.pt[pt_reach], pt), (ee_pairs, c.ee[ee_reach], ee)):
+            for index, reach, terms in ((pt_pairs, pt_reach, pt), (ee_pairs, ee_reach, ee)):
                 add(index, terms, "contact", "clamp" if project else "none", reach=reach)
         if ctx.friction is not None and ctx.friction.index.shape[0]:
             f_energy, f_grad, f_hess = friction_potential(
@@ -1006,19 +973,24 @@ class SolverCloth:
         grad[:v] += inertia
         return energy, grad, elements
 
-    def _near_masks(self, X: torch.Tensor, candidates: _Pairs) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """Masks of ``candidates``' point–triangle pairs within ``d̂`` and within ``REACH · d̂`` at ``X``, then of its
-        edge–edge pairs, by the distance-only kernels, and their counts (``[4]`` on the device, not read)."""
+    def _active_rows(
+        self, X: torch.Tensor, candidates: _Pairs, capacity: tuple[int, int] | None = None, reach: bool = False
+    ) -> tuple[torch.Tensor, ...]:
+        """Rows of ``candidates``' point–triangle and edge–edge pairs within ``d̂`` at ``X`` (the active barrier pairs),
+        by the distance-only kernels; with ``reach``, then the rows within ``REACH · d̂``.
+
+        With ``capacity`` (no reach), exactly that many rows of each, the last candidate row (a phantom pair:
+        :class:`_NewtonLoop`) filling the rest, and then the ``[2]`` counts of active pairs, all without a read from
+        the device; else exactly the rows selected (a read)."""
         dhat2 = self.config.contact_distance**2
-        masks = [
-            mask
-            for d in (
-                cloth.point_triangle_distance_value(X, candidates.pt),
-                cloth.edge_edge_distance_value(X, candidates.ee),
-            )
-            for mask in (d < dhat2, d < REACH**2 * dhat2)
-        ]
-        return masks, torch.stack([mask.sum() for mask in masks])
+        d_pt = cloth.point_triangle_distance_value(X, candidates.pt)
+        d_ee = cloth.edge_edge_distance_value(X, candidates.ee)
+        if capacity is not None:
+            masks = (d_pt < dhat2, d_ee < dhat2)
+            rows = [_compact(mask, size) for mask, size in zip(masks, capacity, strict=True)]
+            return *rows, torch.stack([mask.sum() for mask in masks])
+        limits = (dhat2, REACH**2 * dhat2) if reach else (dhat2,)
+        return tuple(_compact(d < limit) for limit in limits for d in (d_pt, d_ee))
 
     def _energy(self, X: torch.Tensor, near: _Pairs, ctx: _StepContext) -> torch.Tensor:
         """The incremental potential ``E(X)`` of :meth:`_potential` alone (0-d), from the energy-only kernels: what
@@ -1233,28 +1205,37 @@ class _NewtonMatrices:
     def __init__(self, elastic: list[torch.Tensor]):
         self.elastic = elastic
         self.pattern: assembly.BlockPattern | None = None
+        self.version = 0  # counts the patterns set
         self._mass_slots: torch.Tensor | None = None
-        self.dof: torch.Tensor | None = None
+        self.dof: torch.Tensor | None = None  # the last step's free DOFs, as begin_step was given them
+        self._copy: torch.Tensor | None = None  # and their values then
         self.elastic_blocks = 0
         self._pending: list[torch.Tensor] = []  # block keys that the next step's pattern takes (:meth:`defer`)
 
     def _set_pattern(self, pattern: assembly.BlockPattern) -> None:
         self.pattern = pattern
+        self.version += 1
         self._mass_slots = pattern.diagonal[:, [0, 1, 2], [0, 1, 2]].reshape(-1)  # each free DOF's diagonal entry
 
+    def begin_step(self, dof: torch.Tensor, n: int) -> None:
+        """The pattern for a step's free DOFs ``dof`` (``n`` free vertices): the last one, grown by the blocks
+        deferred to it, if the free vertices are the same and it has not doubled, else the garment's elements'."""
+        same = self._copy is not None and self._copy.shape == dof.shape and bool(torch.equal(self._copy, dof))
+        if not same or self.pattern.block_col.numel() > 2 * self.elastic_blocks:
+            keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
+            self._set_pattern(assembly.block_pattern(keys, n))
+            self.elastic_blocks = self.pattern.block_col.numel()
+        elif self._pending:
+            self._set_pattern(assembly.block_pattern(torch.cat([self.pattern.keys(), *self._pending]), n))
+        self._pending = []
+        self.dof, self._copy = dof, dof.clone()
+
     def prepare(self, elements: list[_Element], dof: torch.Tensor, n: int) -> list[_Element]:
-        """The pattern for this step's free DOFs ``dof`` (``n`` free vertices), and ``elements`` as :meth:`scatter`
-        takes them: the non-empty ones, PSD-filtered (:func:`_filtered`)."""
-        if dof is not self.dof:  # a new step: keep the pattern if the free vertices are the same and it has not doubled
-            same = self.dof is not None and self.dof.shape == dof.shape and bool(torch.equal(self.dof, dof))
-            if not same or self.pattern.block_col.numel() > 2 * self.elastic_blocks:
-                keys = torch.cat([assembly.block_keys(index, dof, n) for index in self.elastic])
-                self._set_pattern(assembly.block_pattern(keys, n))
-                self.elastic_blocks = self.pattern.block_col.numel()
-            elif self._pending:
-                self._set_pattern(assembly.block_pattern(torch.cat([self.pattern.keys(), *self._pending]), n))
-            self._pending = []
-            self.dof = dof
+        """The pattern for this step's free DOFs ``dof`` (``n`` free vertices; a ``dof`` tensor other than the last
+        one starts a step: :meth:`begin_step`), and ``elements`` as :meth:`scatter` takes them: the non-empty ones,
+        PSD-filtered (:func:`_filtered`)."""
+        if dof is not self.dof:
+            self.begin_step(dof, n)
         return _filtered(elements)
 
     def scatter(self, active: list[_Element], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
@@ -1295,6 +1276,351 @@ class _NewtonMatrices:
             if int(missing) == 0:
                 return matrix, out
             self.grow(elements, dof, rhs.shape[0])
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The Newton loop on buffers that stay put
+# ---------------------------------------------------------------------------------------------------------------
+
+
+_PHANTOM = ((1000.0, 1000.0, 1000.0), (1001.0, 1000.0, 1000.0), (1010.0, 1010.0, 1010.0), (1010.0, 1011.0, 1010.0))
+"""Four kinematic vertices that :class:`_NewtonLoop` appends to the positions, km away from any garment: the phantom
+pair over them (point 0 against triangle 1-2-3, and edge 0-1 against edge 2-3) pads the pair buffers on CUDA. Its
+boxes lie metres apart, its distance is far beyond ``d̂`` and nothing moves it, so every kernel gives it zeros."""
+
+
+def _capacity(count: int) -> int:
+    """Rows of a pair buffer that holds ``count`` pairs and a phantom one, with a quarter to spare: a power of two
+    (at least 256), so that a buffer grows, and its graphs are captured anew, a few times at most."""
+    return max(256, 1 << math.ceil(math.log2(1.25 * (count + 1))))
+
+
+def _compact(mask: torch.Tensor, size: int | None = None) -> torch.Tensor:
+    """Rows where ``mask`` holds, in order: all of them (their number is read from the device), or exactly ``size``
+    rows with the last row of the masked array filling the rest (no read: the caller checks the count)."""
+    if size is None:
+        return mask.nonzero().squeeze(1)
+    return torch.nonzero_static(mask, size=size, fill_value=mask.shape[0] - 1).squeeze(1)
+
+
+class _Read(NamedTuple):
+    """What the host reads of a Newton iteration, in one read from the device (:meth:`_NewtonLoop.look`)."""
+
+    energy: float  # E at X
+    missing: bool  # blocks outside the pattern were bounded on the diagonal
+    overflow: bool  # more active pairs than their buffers hold: the iteration must run again (CUDA)
+    reached: bool  # every kinematic vertex is on its target
+    covered: bool  # the sweep X → X + p stays inside the candidates' cover
+    step: float  # ‖p_f‖_∞, m
+    alpha: float  # the sweep's CCD bound (nan where not needed)
+    trial_energy: float  # E at X + α p (nan where not needed)
+
+
+class _Assembled(NamedTuple):
+    """One Newton system (:meth:`_NewtonLoop.assemble`)."""
+
+    energy: torch.Tensor  # 0-d
+    grad: torch.Tensor  # [N, 3]
+    elements: list[_Element]  # as the potential gave them
+    filtered: list[_Element]  # PSD-filtered, as scattered
+    matrix: _Matrix
+    rhs: torch.Tensor  # [n, 3]
+    missing: torch.Tensor  # [1] int32
+    p_kin: torch.Tensor  # [N, 3]
+    active: torch.Tensor | None  # [2] active pairs (CUDA)
+
+
+class _NewtonLoop:
+    """The Newton iterations of a step as four phases over buffers that stay put: each is one CUDA graph on CUDA
+    (:class:`kernels.backend.CapturedCall`), a plain call on the CPU.
+
+    * ``assemble``: the potential at ``X``, its gradient, the PSD-filtered element Hessians, and the Newton matrix and
+      right-hand side (the sparse solve follows, outside any graph: cuDSS does not capture);
+    * ``sweep``: the direction ``p``, the candidates whose boxes meet over the sweep ``X → X + p`` (kept: they hold
+      every pair within d̂ of any point of the sweep, so the next iteration's contacts too), and the flags;
+    * ``ccd``: the sweep's CCD bound ``α``;
+    * ``trial``: ``E`` at ``X + α p``.
+
+    An iteration launches about 270 torch operations and 30 Warp kernels. On an H100 their launches from Python cost
+    more than their kernels (skirt7271 walking: 14 ms of wall time per Newton iteration, 6.3 ms of kernels); replayed
+    as four graphs, they cost the host a few launches. A graph keeps the shapes, addresses and Python scalars it was
+    captured with, so on CUDA every pair list lives in a buffer of fixed capacity, padded with the phantom pair
+    (:data:`_PHANTOM`), and the selections (the sweep's candidates, the active contacts) are compacted into such
+    buffers on the device (:func:`_compact`). A count beyond its buffer grows the buffer (:func:`_capacity`) and runs
+    the phases again; new buffers, a new pattern or a new ``Δt`` capture the graphs anew. On the CPU the lists have
+    their exact sizes and the flags are read between the phases, so the CCD and the trial run only when needed.
+    """
+
+    def __init__(self, solver: SolverCloth, static: bool | None = None):
+        self.solver = solver
+        self.static = solver.x_rest.device.type == "cuda" if static is None else static  # fixed shapes
+        self.capacity: dict[str, int] = {}
+        phases = (self._assemble, self._sweep, self._ccd, self._trial)
+        self.phases = [backend.CapturedCall(f, capture=self.static) for f in phases]
+        self._key: tuple | None = None
+        self._phantom = torch.tensor(_PHANTOM, dtype=F64, device=solver.x_rest.device)
+        self._trial_x: torch.Tensor | None = None
+
+    # -- buffers ----------------------------------------------------------------------------------------------
+
+    def _put(self, name: str, value: torch.Tensor) -> None:
+        """Store ``value`` as buffer ``name``: on CUDA in place where the shapes agree (the graphs read it there),
+        else as new storage, which the graphs must be captured anew for."""
+        old = getattr(self, name, None)
+        if not self.static:
+            setattr(self, name, value)
+        elif isinstance(old, torch.Tensor) and old.shape == value.shape and old.dtype == value.dtype:
+            old.copy_(value)
+        else:
+            setattr(self, name, value.clone())
+            self._reset()
+
+    def _padded(self, name: str, rows: torch.Tensor, pad: torch.Tensor) -> torch.Tensor:
+        """``rows`` on CUDA padded with ``pad`` to the capacity of buffer ``name`` (grown if they do not fit)."""
+        if not self.static:
+            return rows
+        if rows.shape[0] + 1 > self.capacity.get(name, 0):
+            self.capacity[name] = _capacity(rows.shape[0])
+        return torch.cat([rows, pad.expand(self.capacity[name] - rows.shape[0], *pad.shape[1:])])
+
+    def _grow(self, name: str, count: int) -> bool:
+        """Grow buffer ``name``'s capacity if ``count`` pairs and a phantom do not fit; whether it grew."""
+        if count + 1 <= self.capacity[name]:
+            return False
+        self.capacity[name] = _capacity(count)
+        return True
+
+    def _reset(self) -> None:
+        for phase in self.phases:
+            phase.reset()
+
+    def begin(self, X: torch.Tensor, target: torch.Tensor, ctx: _StepContext, cover: _Cover, pairs: _Pairs) -> None:
+        """Load a step: positions ``X [V + B, 3]`` and targets at its start, its context, candidates' cover and the
+        candidates at ``X``; the pattern of the step's Newton matrices."""
+        s = self.solver
+        device = X.device
+        phantom = self._phantom
+        self.rows = X.shape[0]  # garment and body vertices: the phantoms follow
+        self._put("X", torch.cat([X, phantom]))
+        self._put("x_start", torch.cat([ctx.x_start, phantom]))
+        self._put("target", torch.cat([target, phantom]))
+        self._put("kinematic", torch.cat([ctx.kinematic, torch.ones(4, dtype=torch.bool, device=device)]))
+        self._put("dof", torch.cat([ctx.dof, torch.full((4,), -1, dtype=torch.int32, device=device)]))
+        self._put("free", ctx.free)
+        self._put("x_hat", ctx.x_hat)
+        self._put("p", torch.zeros_like(self.X))
+        self._put("p_free", torch.zeros(3 * ctx.free.numel(), dtype=F64, device=device))
+        self._put("alpha", torch.ones((), dtype=F64, device=device))
+        n = self.rows
+        self.pair_pad = torch.arange(n, n + 4, dtype=torch.int32, device=device)[None]
+        self.set_cover(cover)
+        self._put_pairs("swept", pairs)
+        friction = ctx.friction
+        if friction is not None:
+            zero = torch.zeros((), dtype=F64, device=device)
+            self._put("f_index", self._padded("friction", friction.index, self.pair_pad.long()))
+            self._put("f_weight", self._padded("friction", friction.weight, zero.expand(1, 4)))
+            self._put("f_projector", self._padded("friction", friction.projector, zero.expand(1, 3, 3)))
+            self._put("f_force", self._padded("friction", friction.force, zero.expand(1)))
+            friction = _Friction(self.f_index, self.f_weight, self.f_projector, self.f_force)
+        self.ctx = ctx._replace(
+            x_start=self.x_start, x_hat=self.x_hat, kinematic=self.kinematic, dof=self.dof, free=self.free,
+            friction=friction,
+        )  # fmt: skip
+        s._matrices.begin_step(ctx.dof, ctx.free.numel())
+        if self.static:
+            for name in ("active_pt", "active_ee"):
+                self.capacity.setdefault(name, _capacity(0))
+        key = (ctx.dt, ctx.kappa, friction is None, s._matrices.version)
+        if key != self._key:
+            self._reset()
+            self._key = key
+
+    def set_cover(self, cover: _Cover) -> None:
+        """Load new candidates (a search along a sweep that left the last ones' reach)."""
+        one = torch.ones(1, dtype=F64, device=cover.lo.device)
+        pairs = cover.pairs
+        self._put("cover_lo", cover.lo)
+        self._put("cover_hi", cover.hi)
+        self._put("cover_pt", self._padded("cover_pt", pairs.pt, self.pair_pad))
+        self._put("cover_ee", self._padded("cover_ee", pairs.ee, self.pair_pad))
+        self._put("cover_eps", self._padded("cover_ee", pairs.ee_eps, one))
+
+    def _put_pairs(self, name: str, pairs: _Pairs) -> None:
+        one = torch.ones(1, dtype=F64, device=pairs.pt.device)
+        self._put(f"{name}_pt", self._padded(f"{name}_pt", pairs.pt, self.pair_pad))
+        self._put(f"{name}_ee", self._padded(f"{name}_ee", pairs.ee, self.pair_pad))
+        self._put(f"{name}_eps", self._padded(f"{name}_ee", pairs.ee_eps, one))
+
+    def _swept_pairs(self) -> _Pairs:
+        return _Pairs(self.swept_pt, self.swept_ee, 0, 0, self.swept_eps)
+
+    def positions(self) -> torch.Tensor:
+        """``X [V + B, 3]``, the current iterate."""
+        return self.X[: self.rows]
+
+    def direction(self) -> torch.Tensor:
+        """``p [V + B, 3]``, the last direction."""
+        return self.p[: self.rows]
+
+    # -- phases -----------------------------------------------------------------------------------------------
+
+    def _assemble(self) -> _Assembled:
+        s, X = self.solver, self.X
+        swept = self._swept_pairs()
+        active = counts = None
+        if self.static:
+            *active, counts = s._active_rows(X, swept, (self.capacity["active_pt"], self.capacity["active_ee"]))
+        energy, grad, elements = s._potential(X, swept, self.ctx, active=active)
+        filtered = _filtered(elements)
+        p_kin = torch.where(self.kinematic[:, None], self.target - X, torch.zeros_like(X))
+        mass = None if s.config.static else s.mass[self.free]
+        matrix, rhs, missing = s._matrices.scatter(filtered, -grad[self.free], self.dof, p_kin, mass)
+        return _Assembled(energy, grad, elements, filtered, matrix, rhs, missing, p_kin, counts)
+
+    def _sweep(self) -> torch.Tensor:
+        s, X = self.solver, self.X
+        p = torch.where(self.kinematic[:, None], self.target - X, torch.zeros_like(X))
+        reached = (p == 0).all()
+        p.index_copy_(0, self.free, self.p_free.view(-1, 3))
+        step = self.p_free.abs().max() if self.p_free.numel() else p.new_zeros(())
+        n = self.rows
+        cover = _Cover(self.cover_lo, self.cover_hi, _Pairs(self.cover_pt, self.cover_ee, 0, 0, self.cover_eps))
+        covered = s._covers(cover, X[:n], p[:n])
+        pt_keep, ee_keep = s._sweep_masks(X, p, cover)
+        if self.static:
+            self.p.copy_(p)
+            pt_rows = _compact(pt_keep, self.capacity["swept_pt"])
+            ee_rows = _compact(ee_keep, self.capacity["swept_ee"])
+            self.swept_pt.copy_(self.cover_pt[pt_rows])
+            self.swept_ee.copy_(self.cover_ee[ee_rows])
+            self.swept_eps.copy_(self.cover_eps[ee_rows])
+        else:
+            self.p = p
+            pt_rows, ee_rows = _compact(pt_keep), _compact(ee_keep)
+            self.swept_pt, self.swept_ee = self.cover_pt[pt_rows], self.cover_ee[ee_rows]
+            self.swept_eps = self.cover_eps[ee_rows]
+        counts = [pt_keep.sum(), ee_keep.sum()]
+        return torch.stack([reached.to(F64), covered.to(F64), step.to(F64), *(c.to(F64) for c in counts)])
+
+    def _ccd(self) -> torch.Tensor:
+        bound = self.solver._ccd_bound(self.X, self.p, self._swept_pairs())
+        if self.static:
+            self.alpha.copy_(bound)
+        else:
+            self.alpha = bound
+        return bound
+
+    def _trial(self) -> tuple[torch.Tensor, torch.Tensor]:
+        trial = self.X + self.alpha * self.p
+        return trial, self.solver._energy(trial, self._swept_pairs(), self.ctx)
+
+    # -- what the step calls ----------------------------------------------------------------------------------
+
+    def assemble(self) -> _Assembled:
+        """The Newton system at ``X``."""
+        return self.phases[0]()
+
+    def solve(self, assembled: _Assembled, wait: bool) -> None:
+        """Its direction on the free vertices (:meth:`SolverCloth._solve`)."""
+        p_free = self.solver._solve(assembled.matrix, assembled.rhs.reshape(-1), wait=wait)
+        if self.static:
+            self.p_free.copy_(p_free)
+        else:
+            self.p_free = p_free
+
+    def look(self, assembled: _Assembled, timer: _PhaseTimer) -> _Read:
+        """The sweep, its CCD bound and the trial at the bound, and what the host needs of them and of
+        ``assembled``, in one read. On CUDA the three phases run before the read (CCD and trial are wasted where the
+        step has converged or the sweep leaves the cover); on the CPU the flags are read first."""
+        a, dt, tolerance = assembled, self.ctx.dt, self.solver.config.newton_tolerance
+        while True:
+            timer.start()
+            flags = self.phases[1]()
+            timer.stop("broad_phase")
+            head = [a.energy.reshape(1), a.missing.to(F64), flags]
+            if not self.static:
+                energy, missing, reached, covered, step, _, _ = torch.cat(head).tolist()
+                if not covered or reached and step / dt < tolerance:  # the step's own test
+                    return _Read(energy, missing > 0, False, reached == 1.0, covered == 1.0, step, math.nan, math.nan)
+            timer.start()
+            self.phases[2]()
+            timer.stop("ccd")
+            timer.start()
+            self._trial_x, trial_energy = self.phases[3]()
+            timer.stop("line_search")
+            tail = [self.alpha.reshape(1), trial_energy.reshape(1)]
+            if a.active is not None:
+                tail.append(a.active.to(F64))
+            energy, missing, reached, covered, step, swept_pt, swept_ee, alpha, trial_energy, *active = torch.cat(
+                head + tail
+            ).tolist()
+            if self.static:
+                grew = [self._grow(name, int(c)) for name, c in (("swept_pt", swept_pt), ("swept_ee", swept_ee))]
+                if any(grew):  # the sweep's candidates did not fit: larger buffers, the same phases again
+                    self._regrow()
+                    continue
+            overflow = False
+            if active:
+                grew = [self._grow(name, int(c)) for name, c in zip(("active_pt", "active_ee"), active, strict=True)]
+                overflow = any(grew)
+                if overflow:
+                    self._reset()
+            reached, covered = reached == 1.0, covered == 1.0
+            return _Read(energy, missing > 0, overflow, reached, covered, step, alpha, trial_energy)
+
+    def _regrow(self) -> None:
+        """New swept buffers at their grown capacities (their contents are the sweep phase's to write)."""
+        for name, width in (("swept_pt", 4), ("swept_ee", 4)):
+            setattr(self, name, self.pair_pad.expand(self.capacity[name], width).clone())
+        self.swept_eps = torch.ones(self.capacity["swept_ee"], dtype=F64, device=self.X.device)
+        self._reset()
+
+    def trial_energy(self, alpha: float, timer: _PhaseTimer) -> float:
+        """``E`` at ``X + α p`` (a backtracking step of the line search)."""
+        if self.static:
+            self.alpha.fill_(alpha)
+        else:
+            self.alpha = torch.tensor(alpha, dtype=F64, device=self.X.device)
+        timer.start()
+        self._trial_x, energy = self.phases[3]()
+        energy = float(energy)
+        timer.stop("line_search")
+        return energy
+
+    def accept(self, snap: bool) -> None:
+        """Move ``X`` to the last trial; ``snap`` puts the kinematic vertices on their targets exactly."""
+        X = self._trial_x
+        if snap:
+            X = torch.where(self.kinematic[:, None], self.target, X)
+        if self.static:
+            self.X.copy_(X)
+        else:
+            self.X = X
+
+    def _with_reach(self, elements: list[_Element]) -> list[_Element]:
+        """``elements`` with each contact element's reach the candidates within ``REACH · d̂`` (on CUDA the loop's
+        contact elements carry their own pairs)."""
+        if not self.static:
+            return elements
+        swept = self._swept_pairs()
+        _, _, pt_reach, ee_reach = self.solver._active_rows(self.X, swept, reach=True)
+        reach = iter([swept.pt[pt_reach], swept.ee[ee_reach]])
+        return [e._replace(reach=next(reach)) if e.reach is not None else e for e in elements]
+
+    def defer(self, assembled: _Assembled) -> None:
+        """Grow the pattern by the blocks of ``assembled`` at the next step (:meth:`_NewtonMatrices.defer`)."""
+        self.solver._matrices.defer(self._with_reach(assembled.elements), self.dof, self.free.numel())
+
+    def complete(self, assembled: _Assembled) -> _Assembled:
+        """``assembled`` on a pattern grown until it holds every block (:meth:`_NewtonMatrices.complete`)."""
+        s, a = self.solver, assembled
+        mass = None if s.config.static else s.mass[self.free]
+        elements = self._with_reach(a.elements)
+        matrix, rhs = s._matrices.complete(a.filtered, elements, -a.grad[self.free], self.dof, a.p_kin, mass)
+        self._reset()  # the graphs hold the old pattern
+        self._key = (*self._key[:-1], s._matrices.version)
+        return a._replace(matrix=matrix, rhs=rhs, missing=torch.zeros_like(a.missing))
 
 
 def _keys(elements: list[_Element], dof: torch.Tensor, n: int) -> list[torch.Tensor]:

@@ -156,3 +156,46 @@ def test_nvidia_libraries_are_looked_for_at_the_environments_path_first(monkeypa
     monkeypatch.syspath_prepend(str(tmp_path))
     found = backend.nvidia_library_candidates("example", "EXAMPLE_LIBRARY")
     assert found[:2] == ["/opt/example/libexample.so", str(wheel / "libexample.so.2")]
+
+
+def test_captured_call_follows_its_buffers(device):
+    """A function of torch operations and Warp launches, called through CapturedCall: each call gives what a plain
+    call would, from the values its input buffers hold then (on CUDA one CUDA graph, captured once)."""
+    torch_device = backend.torch_device()
+    x = torch.arange(6, dtype=torch.float64, device=torch_device)
+    y = torch.ones(6, dtype=torch.float64, device=torch_device)
+
+    def fn():
+        out = torch.empty_like(x)
+        backend.launch(_axpy, x.numel(), [wp.float64(3.0), x, y, out])
+        return out, (out * out).sum(), torch.nonzero_static(out > 10.0, size=4, fill_value=-1).squeeze(1)
+
+    call = backend.CapturedCall(fn)
+    for step in range(3):
+        x.mul_(2.0).add_(step)  # in place: the buffer the graph reads
+        y.fill_(float(step))
+        out, total, rows = call()
+        want = 3.0 * x + y
+        torch.testing.assert_close(out, want, rtol=0.0, atol=0.0)
+        torch.testing.assert_close(total, (want * want).sum(), rtol=1e-15, atol=0.0)
+        expected = torch.nonzero(want > 10.0).squeeze(1)[:4]
+        expected = torch.cat([expected, expected.new_full((4 - expected.numel(),), -1)])
+        assert torch.equal(rows, expected)
+    assert call.captures == (1 if device == "cuda" else 0)
+    call.reset()
+    out, _, _ = call()
+    torch.testing.assert_close(out, 3.0 * x + y, rtol=0.0, atol=0.0)
+    assert call.captures == (2 if device == "cuda" else 0)
+
+
+def test_captured_calls_outlive_graphs_left_to_the_collector(device):
+    """Graphs dropped in reference cycles are collected outside later captures (a graph destroyed during a capture
+    would void it)."""
+    x = torch.arange(4, dtype=torch.float64, device=backend.torch_device())
+    for k in range(4):
+        holder: dict = {}
+        holder["self"] = holder  # a cycle: only the collector frees it
+        holder["call"] = backend.CapturedCall(lambda: x * 2.0 + 1.0)
+        torch.testing.assert_close(holder["call"](), x * 2.0 + 1.0)
+        del holder
+        x.add_(k)

@@ -211,6 +211,35 @@ def test_membrane_stress_filter_lands_the_sheet_as_eigen_filtering(device):
     assert abs(heights["stress"] - heights["eigen"]) < 2e-3, heights
 
 
+def test_fixed_shape_newton_loop_takes_the_exact_lists_steps(device):
+    """The Newton loop as it runs on CUDA (pair lists in buffers of fixed capacity, padded with a phantom pair, each
+    phase one CUDA graph) takes the steps of the loop over exact pair lists: bit for bit on the CPU, to rounding on
+    CUDA (sums in atomics order). Buffers start too small for the contacts, so that each kind of growth runs: the
+    iteration whose active pairs overflow runs again, and so do the phases whose sweep candidates overflow."""
+    from physavatar.cloth import _NewtonLoop
+
+    runs = {}
+    for static in (False, True):
+        solver, control, _, _ = _sheet_over_sphere(10)
+        loop = solver._loop = _NewtonLoop(solver, static=static)
+        loop.capacity.update(active_pt=2, active_ee=2, swept_pt=2, swept_ee=2)
+        state = solver.initial_state()
+        trace = []
+        for _ in range(9):
+            stats = solver.step(state, state, control, 0.04)
+            trace.append((stats.newton_iterations, stats.contacts, stats.candidate_searches))
+        assert stats.contacts > 0  # in contact by the last step
+        runs[static] = state.x.cpu(), trace, loop
+    (exact, trace, _), (fixed, fixed_trace, loop) = runs[False], runs[True]
+    assert fixed_trace == trace
+    assert min(loop.capacity[name] for name in ("active_pt", "active_ee", "swept_pt", "swept_ee")) > 2
+    if device == "cpu":
+        assert torch.equal(fixed, exact)
+    else:
+        torch.testing.assert_close(fixed, exact, rtol=0.0, atol=1e-9)
+        assert all(phase.captures >= 2 for phase in loop.phases)  # captured anew as the buffers grew
+
+
 def test_cpu_steps_are_bitwise_reproducible(device):
     """Same inputs on the CPU give identical output, run to run."""
     if device != "cpu":
