@@ -498,6 +498,7 @@ class SolverCloth:
         self._unchecked = False  # the last solve queued an unchecked cuDSS factorisation (:meth:`_solved`)
         self._matrices = _NewtonMatrices([self.faces, self.hinges])
         self._loop = _NewtonLoop(self)
+        self._kappa: dict[float, float] = {}  # barrier stiffness by step size
         self.linear_solver = solver
         margin = config.candidate_margin
         self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)
@@ -541,10 +542,12 @@ class SolverCloth:
         target[fixed] = target_fixed
         target[v:] = b1
         dof = torch.full((v + nb,), -1, dtype=torch.int32, device=device)
-        free = (~kinematic).nonzero().squeeze(1)
+        free = torch.nonzero_static(~kinematic, size=v - fixed.numel()).squeeze(1)  # the boundary holds no repeats
         dof[free] = torch.arange(free.numel(), dtype=torch.int32, device=device)
         x_hat = x_start + dt * state_in.v.to(device, F64) + dt * dt * self.gravity
-        kappa = barrier_stiffness(self.config, float(self.mass.mean()), dt)
+        if dt not in self._kappa:
+            self._kappa[dt] = barrier_stiffness(self.config, float(self.mass.mean()), dt)
+        kappa = self._kappa[dt]
         x_rest_all = torch.cat([self.x_rest, b0])
         ctx = _StepContext(dt, kappa, X.clone(), x_hat, x_rest_all, kinematic, dof, free, None)
         return X, target, ctx
@@ -622,8 +625,9 @@ class SolverCloth:
         X = loop.positions().clone()
         state_out.x = X[:v].clone()
         state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
-        near = self._near(X, self._swept(X, torch.zeros_like(X), cover), ctx)
-        d_body, d_self, contacts = self._min_distances(X, near)
+        # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
+        near = self._sweep_masks(X, torch.zeros_like(X), cover)
+        d_body, d_self, contacts = self._min_distances(X, cover.pairs, near)
         return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches)
 
     # -- parameter sensitivities ------------------------------------------------------------------------------
@@ -759,24 +763,31 @@ class SolverCloth:
         for name, t in (("state_in.x", state_in.x), ("state_in.v", state_in.v)):
             if tuple(t.shape) != (v, 3):
                 raise ValueError(f"{name} must have shape [{v}, 3], got {list(t.shape)}")
-            if not bool(torch.isfinite(t).all()):
-                raise ValueError(f"{name} holds NaN or inf values")
         for name, t in (("control.body_start", control.body_start), ("control.body_end", control.body_end)):
             if tuple(t.shape) != (nb, 3):
                 raise ValueError(f"{name} must have shape [{nb}, 3] (the body mesh's vertices), got {list(t.shape)}")
         fixed = control.boundary_index.to(device).long()
         if fixed.dim() != 1 or tuple(control.boundary_target.shape) != (fixed.numel(), 3):
             raise ValueError("boundary_index must be [D] and boundary_target [D, 3]")
-        if fixed.numel() and (int(fixed.min()) < 0 or int(fixed.max()) >= v):
-            raise ValueError(f"boundary_index must index garment vertices 0..{v - 1}")
-        if fixed.numel() != torch.unique(fixed).numel():
-            raise ValueError("boundary_index holds repeated vertices; pass each Dirichlet vertex once")
         if self.config.static and fixed.numel() == 0:
             raise ValueError(
                 "a static solve needs boundary vertices: with boundary_index empty the garment has no equilibrium "
                 "under gravity; pin the vertices attached to the body (e.g. the shoulder region)"
             )
         x = state_in.x.to(device, F64).contiguous()
+        # the checks of values, in one read from the device
+        checks = [torch.isfinite(x).all(), torch.isfinite(state_in.v.to(device)).all()]
+        if fixed.numel():
+            ordered = fixed.sort().values
+            checks += [(ordered[0] >= 0) & (ordered[-1] < v), (ordered[1:] != ordered[:-1]).all()]
+        finite_x, finite_v, *index = torch.stack(checks).tolist()
+        for name, finite in (("state_in.x", finite_x), ("state_in.v", finite_v)):
+            if not finite:
+                raise ValueError(f"{name} holds NaN or inf values")
+        if index and not index[0]:
+            raise ValueError(f"boundary_index must index garment vertices 0..{v - 1}")
+        if index and not index[1]:
+            raise ValueError("boundary_index holds repeated vertices; pass each Dirichlet vertex once")
         b0 = control.body_start.to(device, F64).contiguous()
         b1 = control.body_end.to(device, F64).contiguous()
         return x, b0, b1, fixed, control.boundary_target.to(device, F64)
@@ -1057,25 +1068,25 @@ class SolverCloth:
     def _lagged_friction(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Friction:
         """Normal forces ``μλ_k``, closest-point weights and tangent projectors of the contacts at ``x^t`` (IPC §5),
         by the Warp kernel :func:`kernels.friction.lagged_contacts`."""
-        near = self._near(X, pairs, ctx)
-        dhat2 = self.config.contact_distance**2
-        return _Friction(
-            *kernels_friction.lagged_contacts(X, near.pt, near.ee, near.ee_eps, dhat2, ctx.kappa, self.config.friction)
-        )
+        dhat2, mu = self.config.contact_distance**2, self.config.friction
+        return _Friction(*kernels_friction.lagged_contacts(X, pairs.pt, pairs.ee, pairs.ee_eps, dhat2, ctx.kappa, mu))
 
-    def _min_distances(self, X: torch.Tensor, pairs: _Pairs) -> tuple[float, float, int]:
-        """Smallest garment–body and garment–garment distances among the pairs, m, and the pairs within ``d̂``."""
+    def _min_distances(
+        self, X: torch.Tensor, pairs: _Pairs, masks: tuple[torch.Tensor, torch.Tensor] | None = None
+    ) -> tuple[float, float, int]:
+        """Smallest garment–body and garment–garment distances among the pairs (those ``masks`` select, when given),
+        m (inf where there are none), and the number of pairs within ``d̂``; one read from the device."""
         dhat2 = self.config.contact_distance**2
         d_pt = cloth.point_triangle_distance_value(X, pairs.pt)
         d_ee = cloth.edge_edge_distance_value(X, pairs.ee)
-        body = torch.cat([d_pt[: pairs.pt_body], d_ee[: pairs.ee_body]])
-        own = torch.cat([d_pt[pairs.pt_body :], d_ee[pairs.ee_body :]])
-        contacts = int((body < dhat2).sum() + (own < dhat2).sum())
-
-        def smallest(d: torch.Tensor) -> float:
-            return math.sqrt(max(float(d.min()), 0.0)) if d.numel() else math.inf
-
-        return smallest(body), smallest(own), contacts
+        if masks is not None:
+            d_pt, d_ee = (torch.where(mask, d, math.inf) for mask, d in zip(masks, (d_pt, d_ee), strict=True))
+        inf = X.new_full((1,), math.inf)
+        body = torch.cat([d_pt[: pairs.pt_body], d_ee[: pairs.ee_body], inf])
+        own = torch.cat([d_pt[pairs.pt_body :], d_ee[pairs.ee_body :], inf])
+        contacts = (body < dhat2).sum() + (own < dhat2).sum()
+        body, own, contacts = torch.stack([body.min(), own.min(), contacts.to(X.dtype)]).tolist()
+        return math.sqrt(max(body, 0.0)), math.sqrt(max(own, 0.0)), int(contacts)
 
 
 class _StepContext(NamedTuple):
