@@ -128,6 +128,7 @@ def simulate_command(args: argparse.Namespace) -> None:
     if not garment_path.is_file():
         raise FileNotFoundError(f"garment file {garment_path} does not exist; pass --garment PATH (OBJ or PLY)")
     _check_motion(args.motion)
+    sim.require_video_encoder()  # before the simulation, not after it
     backend.init(args.device)
     body = Body.mannequin(spacing=0.03)
     garment = place_on_body(load_garment(garment_path), body)
@@ -189,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
             simulate_command(args)
         else:
             stage_command(args)
-    except (ValueError, FileNotFoundError) as error:
+    except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     return 0

@@ -13,6 +13,7 @@ and a JSON of per-step statistics.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 import math
 import sys
@@ -35,6 +36,7 @@ from physavatar.motion import Motion
 __all__ = [
     "SimulationResult",
     "render_video",
+    "require_video_encoder",
     "simulate",
     "write_meshes",
     "write_npz",
@@ -212,6 +214,16 @@ def write_stats_json(result: SimulationResult, path: str | Path) -> Path:
     return path
 
 
+def require_video_encoder() -> None:
+    """Raise ``ModuleNotFoundError``, naming the fix, where :func:`render_video` cannot write an ``.mp4``: imageio
+    writes it through the imageio-ffmpeg package (without it, imageio picks another plugin by the file name and fails
+    with an unrelated error). Call it before long work whose results include a video."""
+    if importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ModuleNotFoundError(
+            "writing an .mp4 video needs the imageio-ffmpeg package, which is not installed: pip install imageio-ffmpeg"
+        )
+
+
 def render_video(
     result: SimulationResult,
     path: str | Path,
@@ -233,6 +245,7 @@ def render_video(
     """
     import imageio.v2 as imageio
 
+    require_video_encoder()
     width, height = size
     device = backend.torch_device()
     garment, body = result.garment_frames, result.body_frames

@@ -161,3 +161,20 @@ def test_bad_input_is_one_clear_line(args, message, tmp_path):
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
+
+
+def test_missing_video_encoder_is_named_before_the_simulation(monkeypatch, tmp_path, capsys):
+    """Without imageio-ffmpeg the command stops at once, naming the package, instead of simulating first and then
+    failing in another imageio plugin."""
+    import importlib.util
+
+    from apps import avatar
+
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else find_spec(name, *a)
+    )
+    assert avatar.main(["simulate", "--smoke", "--out", str(tmp_path)]) == 2
+    error = capsys.readouterr().err
+    assert "pip install imageio-ffmpeg" in error and "error:" in error
+    assert not any(tmp_path.iterdir())  # nothing simulated, nothing written
