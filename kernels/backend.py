@@ -27,6 +27,7 @@ import glob
 import math
 import os
 import sys
+import time
 
 import torch
 
@@ -320,7 +321,8 @@ class CapturedCall:
 
     On CUDA the first call runs ``fn`` once as it is (so that modules load and libraries make their handles and
     workspaces outside the capture), then captures it on a side stream, with Warp's launches sent to that stream,
-    and replays the graph; every later call only replays it. The outputs are then the graph's own tensors: each
+    and replays the graph; every later call only replays it. A capture after :meth:`reset` skips that first run
+    (unless the capture fails without it). The outputs are then the graph's own tensors: each
     call returns the same tensors, overwritten, so copy what must outlive the next call. :meth:`reset` drops the
     graph (for new input buffers, shapes or Python scalars, which the graph holds as they were at capture).
     ``capture=False`` makes every call a plain call (a caller whose inputs change shape from call to call).
@@ -333,14 +335,21 @@ class CapturedCall:
         self.fn = fn
         self.capture = capture  # False: always a plain call (for callers whose inputs change shape)
         self.captures = 0  # how many times the graph was captured
+        self.capture_seconds = 0.0  # host time those captures took
         self._graph = None
         self._outputs = None
+        self._stream: torch.cuda.Stream | None = None
 
     def __call__(self):
         if not self.capture or _require_init() != "cuda":
             return self.fn()
         if self._graph is None:
-            self._capture()
+            start = time.perf_counter()
+            try:
+                self._capture(warm_up=self._stream is None)
+            except RuntimeError:  # something still loaded lazily, which a capture forbids: run it first, then again
+                self._capture(warm_up=True)
+            self.capture_seconds += time.perf_counter() - start
         self._graph.replay()
         return self._outputs
 
@@ -348,18 +357,23 @@ class CapturedCall:
         """Forget the graph: the next call captures ``fn`` again."""
         self._graph = self._outputs = None
 
-    def _capture(self) -> None:
+    def _capture(self, warm_up: bool) -> None:
+        """Capture ``fn`` on this call's own side stream; ``warm_up`` runs it there once before (the first capture:
+        modules, library handles and the stream's workspaces load outside the capture)."""
         import warp as wp
 
         device = warp_device()
-        stream = torch.cuda.Stream()
+        if self._stream is None:
+            self._stream = torch.cuda.Stream()
+        stream = self._stream
         stream.wait_stream(torch.cuda.current_stream())
         warp_stream = wp.get_stream(device)
         wp.set_stream(wp.stream_from_torch(stream), device=device)
         collecting = gc.isenabled()
         try:
             with torch.cuda.stream(stream):
-                self.fn()  # outside the capture: lazy loads, handles, workspaces
+                if warm_up:
+                    self.fn()
                 # No collection during the capture: a collected object that frees device memory or destroys a graph
                 # (another solver's, say) would make an operation the capture forbids and void the graph. (Not
                 # ``torch.cuda.graph``, which collects first: 140 ms with this project's modules loaded.) Thread-local

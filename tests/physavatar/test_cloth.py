@@ -238,7 +238,8 @@ def test_fixed_shape_newton_loop_takes_the_exact_lists_steps(device):
         assert torch.equal(fixed, exact)
     else:
         torch.testing.assert_close(fixed, exact, rtol=0.0, atol=1e-5)
-        assert all(phase.captures >= 2 for phase in loop.phases)  # captured anew as the buffers grew
+        assert all(phase.captures >= 1 for phase in loop.phases)
+        assert loop.phases[0].captures >= 2  # the assembly, captured anew as its active pairs outgrew their buffers
 
 
 def test_cpu_steps_are_bitwise_reproducible(device):
