@@ -36,6 +36,16 @@ benchmark on a fresh H100: now 0.16 s at most, 99.0 ms median on a slower H100).
 (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged reads, 4.47 s with the COO assembly),
 half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
 
+With the Newton iterations as four CUDA graphs over buffers that stay put (:class:`physavatar.cloth._NewtonLoop`) and 7
+reads from the device a step instead of about 20, on one H100, each version in its own process, interleaved: this
+benchmark ``--reps 5`` 93.8 and 90.3 ms against 102.5 and 105.0 ms, ``--reps 10`` 73.7 ms against 95.9 ms; frames 4-33
+of the walk (179 Newton iterations, 53 candidate searches) 60.0 and 57.6 ms per frame (mean; medians 54.7 and 54.1)
+against 71.2 ms (62.9). The loop is then bound by the device: its kernels take 34.3 ms of a frame's ~57 (CUPTI, frames
+34-39, 3.7 Newton iterations a frame): the candidate searches 12.6 ms (37 %), cuDSS 8.4 ms (its factorisation 6.9 ms,
+one kernel of 1.8 ms per Newton iteration), the batched Jacobi eigensolver 4.4 ms, the barrier kernels 2.7 ms. Over
+the whole 4-s walk (99 frames, CPU run) the skirt takes 495 Newton iterations, 5.0 a frame (9.6 in frames 1-10, 4.5
+after). ``cloth_step_large`` ``--reps 3``: 562 ms per frame, 6.7x its reference (3.78 s), on the same machine.
+
 ``cloth_step_large`` on an H100 (``--device cuda --size paper --reps 3``; 50,176 vertices, 99,458 faces, cuDSS):
 449.4 ms per frame (2.23 frames/s), 7.4x the reference (3.34 s); 824.3 ms before the merged reads, the Jacobi filter
 and the contact derivatives of the active pairs only (929.6 ms with the COO assembly; 5.10 s with block-Jacobi CG,
