@@ -10,29 +10,29 @@ reference runs the same solver with the element energies, gradients and Hessians
 of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
 per-pair NumPy root finder, far too slow for a step).
 
-``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky): 103.0 ms
-per frame (9.71 frames/s). H100 machines vary by about ±30 % from one to the next, so changes are compared on one
-machine, each code version in its own process, over frames 4-13 of the walk (the same 81 Newton iterations). With the
-Newton matrices scattered by :mod:`kernels.assembly` onto a block pattern that outlives the step: 109.3 ms per frame
-(13.5 ms per Newton iteration) against 149.7 ms (18.5 ms) with the COO assembly in torch. With the Warp kernels launched
-through :func:`kernels.backend.launch` and fewer reads from the device (one per candidate search, two fewer per Newton
-iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6 ms, three runs). With phase times from
-CUDA events and the reads of an iteration merged: 100.0-102.0 ms against 110.7 ms. With the element Hessians
-PSD-filtered by cuSOLVER's batched Jacobi eigensolver (:mod:`kernels.cusolver`): 88.4-101.4 ms against 125.0 ms, and
-this benchmark 103.0 ms against 133.8 ms. With the contact derivatives taken for the active pairs only (a tenth of the
-candidates near X), the barrier kernels went from 0.94 to 0.70 ms per Newton iteration and the GPU's kernel time from
-6.57 to 6.15 ms (CUPTI, frames 5-9), but the wall time did not move beyond the machine's noise (this benchmark 97.8 and
-104.0 ms): the loop is bound by the host's launches. With each Warp launch recorded once and replayed
-(:func:`kernels.backend.launch`, about half the host time per launch), on a faster H100, three interleaved runs each:
-74.1 ms per frame (9.15 ms per Newton iteration) against 82.3 ms (10.16 ms). Phases over those frames (GPU time between
-CUDA events): 47 % assembly (element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse solves
-(factorisation and solve), 19 % candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction. Before the
-Jacobi filter a Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS (1.9 ms of it
-the factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier kernels, the
-rest in about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the warm-up step,
-which compiles the kernels; with the float64 overloads of the generic kernels declared at import, it builds them all,
-where the first contact used to rebuild the module (a 25 s step, and phase shares of 99 % assembly, in this
-benchmark on a fresh H100: now 0.16 s at most, 99.0 ms median on a slower H100). On this project's 2-core CPU
+``cloth_step`` on an H100 (``--device cuda --size paper --reps 5``; 3757 vertices, cuDSS's sparse Cholesky): 90.3-93.8
+ms per frame (10.7-11.1 frames/s; the history below, newest last). H100 machines vary by about ±30 % from one to the
+next, so changes are compared on one machine, each code version in its own process, over frames 4-13 of the walk (the
+same 81 Newton iterations). With the Newton matrices scattered by :mod:`kernels.assembly` onto a block pattern that
+outlives the step: 109.3 ms per frame (13.5 ms per Newton iteration) against 149.7 ms (18.5 ms) with the COO assembly in
+torch. With the Warp kernels launched through :func:`kernels.backend.launch` and fewer reads from the device (one per
+candidate search, two fewer per Newton iteration), on a slower machine: 121.0 ms (14.9 ms) against 129-151 ms (16.0-18.6
+ms, three runs). With phase times from CUDA events and the reads of an iteration merged: 100.0-102.0 ms against 110.7
+ms. With the element Hessians PSD-filtered by cuSOLVER's batched Jacobi eigensolver (:mod:`kernels.cusolver`):
+88.4-101.4 ms against 125.0 ms, and this benchmark 103.0 ms against 133.8 ms. With the contact derivatives taken for the
+active pairs only (a tenth of the candidates near X), the barrier kernels went from 0.94 to 0.70 ms per Newton iteration
+and the GPU's kernel time from 6.57 to 6.15 ms (CUPTI, frames 5-9), but the wall time did not move beyond the machine's
+noise (this benchmark 97.8 and 104.0 ms): the loop is bound by the host's launches. With each Warp launch recorded once
+and replayed (:func:`kernels.backend.launch`, about half the host time per launch), on a faster H100, three interleaved
+runs each: 74.1 ms per frame (9.15 ms per Newton iteration) against 82.3 ms (10.16 ms). Phases over those frames (GPU
+time between CUDA events): 47 % assembly (element Hessians, their batched eigen-filtering, the scatter), 24 % the sparse
+solves (factorisation and solve), 19 % candidate searches and filtering, 6 % the line search, 3 % CCD, 1 % friction.
+Before the Jacobi filter a Newton iteration kept the GPU busy 7.6 ms of its 12.5 (CUPTI, frames 14-18): 2.3 ms cuDSS
+(1.9 ms of it the factorisation), 2.3 ms ``torch.linalg.eigh``, 0.9 ms the BVH candidate searches, 0.9 ms the barrier
+kernels, the rest in about 390 small kernels, each launched from Python. The phase shares in ``extra`` leave out the
+warm-up step, which compiles the kernels; with the float64 overloads of the generic kernels declared at import, it
+builds them all, where the first contact used to rebuild the module (a 25 s step, and phase shares of 99 % assembly, in
+this benchmark on a fresh H100: now 0.16 s at most, 99.0 ms median on a slower H100). On this project's 2-core CPU
 (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged reads, 4.47 s with the COO assembly),
 half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase.
 
