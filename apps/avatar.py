@@ -120,6 +120,8 @@ def simulate_command(args: argparse.Namespace) -> None:
     frames = SMOKE_FRAMES if args.smoke else args.frames
     if frames < 1:
         raise ValueError(f"--frames must be at least 1, got {frames}")
+    _check_motion(args.motion)
+    sim.require_video_encoder()  # before the simulation, not after it
     garment_path = args.garment
     if garment_path is None:
         if not DATA.is_dir():
@@ -127,8 +129,6 @@ def simulate_command(args: argparse.Namespace) -> None:
         garment_path = DEFAULT_GARMENT
     if not garment_path.is_file():
         raise FileNotFoundError(f"garment file {garment_path} does not exist; pass --garment PATH (OBJ or PLY)")
-    _check_motion(args.motion)
-    sim.require_video_encoder()  # before the simulation, not after it
     backend.init(args.device)
     body = Body.mannequin(spacing=0.03)
     garment = place_on_body(load_garment(garment_path), body)
