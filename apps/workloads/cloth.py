@@ -35,8 +35,8 @@ builds them all, where the first contact used to rebuild the module (a 25 s step
 this benchmark on a fresh H100: now 0.16 s at most, 99.0 ms median on a slower H100). On this project's 2-core CPU
 (``--device cpu --reps 3``, SuperLU): 3.56 s per frame (3.66 s before the merged reads, 4.47 s with the COO assembly),
 half of it in assembly (LAPACK's eigen-filtering most of it), 41 % in SuperLU, 8 % in the broad phase. The CPU runs the
-exact contact lists, not the graphs below: on a later day, two runs each, 3.91 and 3.94 s with them against 3.93 and
-3.99 s for the version before them (0.25 frames/s).
+exact contact lists, not the graphs below, so they leave its figure where it was: on a later day, two runs each, 3.91
+and 3.94 s with the graph loop's version against 3.93 and 3.99 s before it (0.25 frames/s).
 
 With the Newton iterations as four CUDA graphs over buffers that stay put (:class:`physavatar.cloth._NewtonLoop`) and 7
 reads from the device a step instead of about 20, on one H100, each version in its own process, interleaved: this
