@@ -130,7 +130,8 @@ def init(device: str | None = None) -> str:
     import warp as wp
 
     wp.config.log_level = wp.LOG_WARNING
-    wp.init()
+    with _native_stderr_silenced(device == "cpu"):
+        wp.init()
     ti.init(
         arch=ti.cuda if device == "cuda" else ti.cpu,
         default_fp=ti.f32,
@@ -141,6 +142,27 @@ def init(device: str | None = None) -> str:
         wp.set_stream(wp.stream_from_torch(torch.cuda.current_stream()), device="cuda:0")
     _device = device
     return device
+
+
+@contextlib.contextmanager
+def _native_stderr_silenced(silence: bool):
+    """Discard what native code writes to the process's stderr while the block runs, when ``silence`` holds.
+
+    Warp's library prints a warning straight to file descriptor 2 when it finds no CUDA driver; a CPU run asked for
+    no GPU, so the warning only alarms. Python-level errors still raise as usual.
+    """
+    if not silence:
+        yield
+        return
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def current_device() -> str | None:
