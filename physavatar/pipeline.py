@@ -40,7 +40,6 @@ import numpy as np
 import torch
 
 from kernels.image_metrics import psnr, ssim
-from physavatar import motion as motions
 from physavatar.appearance import albedo_error, estimate_appearance, relight
 from physavatar.body import Body
 from physavatar.capture import (
@@ -53,6 +52,7 @@ from physavatar.capture import (
     write_capture,
 )
 from physavatar.cloth import ClothConfig
+from physavatar.drive import BodyDriver
 from physavatar.estimate import (
     SYNTHETIC_FABRIC,
     EstimationProblem,
@@ -62,7 +62,8 @@ from physavatar.estimate import (
     rollout,
 )
 from physavatar.evaluate import geometry_scores, lbs_garment
-from physavatar.garment import boundary_targets, procedural_skirt, select_boundary
+from physavatar.garment import procedural_skirt, select_boundary
+from physavatar.motion import MOTIONS, named_motion
 from physavatar.track import TrackConfig, track
 
 __all__ = [
@@ -80,7 +81,6 @@ __all__ = [
     "track_stage",
 ]
 
-MOTIONS = {"walk": motions.walk, "turn": motions.turn, "raise": motions.raise_arms, "jump": motions.jump}
 BODY_COLOR = (0.78, 0.74, 0.68)
 STAGES = ("capture", "track", "estimate", "appearance", "animate", "evaluate")
 
@@ -119,7 +119,7 @@ class PipelineConfig:
         frames: captured frames used for tracking and fitting (paper: 24), at ``fps``.
         eval_frames: frames of the unseen evaluation motion.
         fps: frames per second; one simulation step per frame (paper: Δt = 0.04 s).
-        fit_motion, eval_motion: names in :data:`MOTIONS`.
+        fit_motion, eval_motion: names in :data:`physavatar.motion.MOTIONS`.
         cameras: cameras on the capture ring.
         image_size: ``(width, height)`` of every view, px.
         ao_samples: sky-occlusion rays per pixel of the capture.
@@ -205,27 +205,20 @@ def _scene(config: PipelineConfig):
     return body, garment, boundary
 
 
-def _motion(name: str, body: Body, frames: int, fps: float):
-    clip = MOTIONS[name](body.skeleton, fps=fps)
-    if clip.num_frames < frames:
-        clip = MOTIONS[name](body.skeleton, duration=frames / fps, fps=fps)
-    return clip
-
-
 def _forward(config: PipelineConfig, body: Body, garment, boundary: torch.Tensor, motion: str, frames: int):
     """The garment at rest driven through the first ``frames`` poses of ``motion``: the body's skinned vertices and the
     boundary's targets, as a problem :func:`physavatar.estimate.rollout` simulates (its reference is a placeholder,
     the rest shape). Returns ``(problem, clip)``."""
-    clip = _motion(motion, body, frames, config.fps)
-    rotations, translation = clip.rotations[:frames], clip.root_translation[:frames]
+    clip = named_motion(motion, body.skeleton, frames - 1, config.fps)
+    driver = BodyDriver.from_motion(body, clip, garment.vertices, boundary, frames - 1)
     problem = EstimationProblem(
         garment.vertices,
         garment.faces,
         garment.vertices.expand(frames, -1, -1),
-        body.skin(rotations, translation),
+        driver.body_frames,
         body.faces,
-        boundary,
-        boundary_targets(body, garment.vertices[boundary], rotations, translation),
+        driver.boundary_index,
+        driver.boundary_targets,
         config.fps,
         config.fabric,
     )
