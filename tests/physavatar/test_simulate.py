@@ -154,6 +154,7 @@ def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, shared_da
         (["--motion", "dance.txt"], "--motion must be one of walk, turn, raise, jump or a .bvh file"),
         (["--garment", "missing.obj"], "garment file missing.obj does not exist"),
         (["--frames", "0"], "--frames must be at least 1"),
+        (["--frames", "1", "--video-size", "0", "0"], "--video-size must be two positive pixel counts W H, got 0 0"),
     ],
 )
 def test_bad_input_is_one_clear_line(args, message, tmp_path):
@@ -161,6 +162,18 @@ def test_bad_input_is_one_clear_line(args, message, tmp_path):
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not any(tmp_path.iterdir())  # refused before any work
+
+
+@pytest.mark.parametrize("command", ["simulate", "capture"])
+def test_out_that_is_a_file_is_refused_before_the_work(command, tmp_path):
+    taken = tmp_path / "results"
+    taken.write_text("not a folder")
+    result = _run(command, "--smoke", "--out", str(taken), "--device", "cpu")
+    assert result.returncode == 2
+    assert "--out is a file, not a folder" in result.stderr and "Traceback" not in result.stderr
+    assert "step 1/" not in result.stderr and "[capture]" not in result.stderr  # nothing simulated
+    assert taken.read_text() == "not a folder"
 
 
 def test_missing_video_encoder_is_named_before_the_simulation(monkeypatch, tmp_path, capsys):
