@@ -65,17 +65,18 @@ same Newton iterations (50, 50, 36, 21 against 50, 50, 36, 22), on one H100; fra
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import torch
 
-from apps.workloads import Case, workload
+from apps.workloads import Case, WorkloadUnavailable, workload
 from kernels import backend, cloth
 from kernels.reference import cloth as ref
+from physavatar.body import Body
 from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth
+from physavatar.drive import BodyDriver
+from physavatar.garment import SHARED_GARMENTS, load_garment, place_on_body, select_boundary
+from physavatar.motion import walk
 from physavatar.shapes import grid_sheet, icosphere
 
-_GARMENTS = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "garments"
 _SKIRT = {"smoke": "skirt1252.obj", "paper": "skirt7271.obj", "large": "skirt7271.obj"}
 
 # vertices per side of the square sheet
@@ -159,21 +160,18 @@ def bench_cloth_step_large(device: str, size: str) -> Case:
 
 @workload("cloth_step", "one Codim-IPC step of a skirt on the walking mannequin, contact on (frames/s)")
 def bench_cloth_step(device: str, size: str) -> Case:
-    from physavatar.body import Body
-    from physavatar.garment import boundary_targets, load_garment, place_on_body, select_boundary
-    from physavatar.motion import walk
-
-    path = _GARMENTS / _SKIRT[size]
+    path = SHARED_GARMENTS / _SKIRT[size]
     if not path.is_file():
-        raise FileNotFoundError(f"cloth_step needs {path} (the shared data folder beside the checkout)")
+        raise WorkloadUnavailable(
+            f"cloth_step needs the DiffCloth skirt {path.name}, absent from {SHARED_GARMENTS}; "
+            "put the project's shared data folder beside the checkout"
+        )
     body = Body.mannequin(spacing=0.03)
     garment = place_on_body(load_garment(path), body)
     boundary = select_boundary(garment, body, mode="waist")
     motion = walk(body.skeleton)
-    body_frames = body.skin(motion.rotations, motion.root_translation).to(backend.torch_device())
-    targets = boundary_targets(body, garment.vertices[boundary], motion.rotations, motion.root_translation)
-    targets = targets.to(backend.torch_device())
-    index = boundary.to(backend.torch_device())
+    driver = BodyDriver.from_motion(body, motion, garment.vertices, boundary, motion.num_frames - 1)
+    driver = driver.to(backend.torch_device())
     solver = SolverCloth(garment.vertices, garment.faces, ClothConfig(), body.faces)
     state = solver.initial_state()
     frame = [0]
@@ -183,11 +181,10 @@ def bench_cloth_step(device: str, size: str) -> Case:
 
     def run():
         t = frame[0]
-        if t + 1 >= motion.num_frames:  # the clip is over: start it again from the rest pose
+        if t + 1 >= driver.frames:  # the clip is over: start it again from the rest pose
             fresh = solver.initial_state()
             state.x, state.v, t = fresh.x, fresh.v, 0
-        control = ClothControl(body_frames[t], body_frames[t + 1], index, targets[t + 1])
-        stats = solver.step(state, state, control, 1.0 / motion.fps)
+        stats = solver.step(state, state, driver.control(t), driver.dt)
         frame[0] = t + 1
         calls[0] += 1
         if calls[0] > 1:  # the first (warm-up) step compiles the kernels: its phases say nothing of the solver
@@ -210,7 +207,7 @@ def bench_cloth_step(device: str, size: str) -> Case:
             "faces": int(garment.faces.shape[0]),
             "body_faces": int(body.faces.shape[0]),
             "motion": "walk",
-            "dt": 1.0 / motion.fps,
+            "dt": driver.dt,
         },
         work=1.0,
         unit="frames/s",
