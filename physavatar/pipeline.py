@@ -96,22 +96,8 @@ per face, Eq. 3 at a tenth of the paper's weight, and 5 % of free stretch in Eq.
 The paper tracks dense scans whose faces cover a few pixels; on this mesh its settings bias the shape. Eq. 3 sums
 ``1 − cos θ ≈ θ²/2`` over neighbouring faces, and the dihedral angles ``θ`` grow with the face size, so at
 ``λ_n = 0.1`` it flattens the folds of the hem; one Gaussian per face cannot cover a 12-px triangle, so the
-silhouette pulls the hem inward. Measured on an H100 (24 frames of the walk, 8 views at 256², mean vertex error
-over frames 2–24, then κ_s/ρ and κ_b/ρ from Levenberg–Marquardt against the truth, start (2, 0.5)):
-
-======================================  ============  ==================
-tracking                                error (mm)    κ_s/ρ, κ_b/ρ
-======================================  ============  ==================
-paper (1 Gaussian per face, λ_n = 0.1)  11.0          +10.9 %, −4.4 %
-16 per face, λ_n = 0.1                  8.8           +22.4 %, −7.9 %
-1 per face, λ_n = 0                     5.1
-4 per face, λ_n = 0                     3.6
-16 per face, λ_n = 0                    3.2           −2.0 %, +0.5 %
-16 per face, λ_n = 0.01 (this)          3.2           −2.5 %, +0.9 %
-======================================  ============  ==================
-
-(all with ``iso_tolerance = 0.05``; with 0, the paper's Eq. 2, the fit read a stiffer membrane, see
-:attr:`~physavatar.track.TrackConfig.iso_tolerance`).
+silhouette pulls the hem inward. With these settings the tracking error fell from 11.0 to 3.2 mm and both ratios
+came within 3 % of the truth (24 frames of the walk, 8 views at 256²; the table is in ``docs/benchmarks.md``).
 """
 
 

@@ -2,14 +2,12 @@
 
 ``splat_fwd_bwd``: forward and backward rasterization of the mesh-aligned Gaussians of the dressed mannequin
 (one per face of the skirt and the body) into 8 views at 512×512 (smoke: the skirt's alone, 2 views at 64×64); the
-reference is the
-dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
+reference is the dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
 ``views × pixels × Gaussians`` tensor).
 
 ``track_frame``: one frame of tracking as the pipeline tracks the skirt (:func:`physavatar.track.track`'s per-frame
 optimisation with :data:`physavatar.pipeline.COARSE_MESH_TRACKING`: 16 Gaussians per face, the default 100 Adam
-iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations). In the
-pipeline's full-size tracking on an H100 a frame took 1.93 s (median of frames 2-24).
+iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations).
 
 ``estimate``: the analytic Levenberg–Marquardt fit of (κ_s, κ_b) to 24 exact frames of the skirt on the walking
 mannequin (smoke: 6 frames of a coarser skirt), from κ_s = 2, κ_b = 0.5; ``extra`` holds the time at which both
