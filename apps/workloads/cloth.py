@@ -44,19 +44,15 @@ def _sheet(n: int, width: float, height: float) -> tuple[torch.Tensor, torch.Ten
 def _reference_energies() -> ClothEnergies:
     """The solver's element evaluators with values, gradients and Hessians from the autograd references."""
 
-    def membrane(x, faces, rest_inv, rest_area, mu, lam, project=False, stress_filter="none"):
-        terms = cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter))
-        return terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
+    def membrane(x, faces, rest_inv, rest_area, mu, lam, stress_filter="none"):
+        return cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter))
 
-    def bending(x, hinges, rest_angle, rest_weight, k_bend, project=False):
-        terms = cloth.ElementTerms(*ref.bending_energy(x, hinges, rest_angle, rest_weight, k_bend))
-        return terms._replace(hess=cloth.project_psd(terms.hess)) if project else terms
+    def bending(x, hinges, rest_angle, rest_weight, k_bend):
+        return cloth.ElementTerms(*ref.bending_energy(x, hinges, rest_angle, rest_weight, k_bend))
 
-    def contact(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness, project=False):
+    def contact(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness):
         pt = cloth.ElementTerms(*ref.point_triangle_barrier(x, pt_pairs, dhat, stiffness))
         ee = cloth.ElementTerms(*ref.edge_edge_barrier(x, ee_pairs, ee_eps_x, dhat, stiffness))
-        if project:
-            pt, ee = (t._replace(hess=cloth.project_psd(t.hess)) for t in (pt, ee))
         return pt, ee
 
     def membrane_value(*args):
