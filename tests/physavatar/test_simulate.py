@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from physavatar.body import Body
-from physavatar.garment import load_garment, place_on_body, procedural_skirt, select_boundary
+from physavatar.garment import DEFAULT_GARMENT, load_garment, place_on_body, procedural_skirt, select_boundary
 from physavatar.motion import walk
 from physavatar.simulate import simulate, write_meshes, write_npz, write_stats_json
 
@@ -126,10 +126,13 @@ def test_simulate_refuses_more_frames_than_the_motion(device, shared_data, body)
         simulate(skirt, body, walk(body.skeleton), frames=200, device=device, progress=False)
 
 
-def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, shared_data, tmp_path):
+def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, tmp_path):
+    """Runs with or without the shared data folder: without it the default garment is the embedded skirt."""
     out = tmp_path / "smoke"
     result = _run("simulate", "--smoke", "--out", str(out), "--device", device)
     assert result.returncode == 0, result.stderr
+    garment = "skirt1252" if DEFAULT_GARMENT.is_file() else "skirt"
+    assert f"frames of the garment '{garment}'" in result.stdout
     sequence = np.load(out / "sequence.npz")
     frames = sequence["garment_frames"].shape[0]
     assert frames >= 3 and sequence["body_frames"].shape[0] == frames
