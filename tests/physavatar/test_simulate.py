@@ -1,5 +1,6 @@
 """A skirt on the walking mannequin (PhysAvatar §3.2, Eq. 5) and the `apps.avatar simulate` command."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -10,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from apps import avatar
 from physavatar.body import Body
 from physavatar.garment import DEFAULT_GARMENT, load_garment, place_on_body, procedural_skirt, select_boundary
 from physavatar.motion import walk
@@ -182,10 +184,6 @@ def test_out_that_is_a_file_is_refused_before_the_work(command, tmp_path):
 def test_missing_video_encoder_is_named_before_the_simulation(monkeypatch, tmp_path, capsys):
     """Without imageio-ffmpeg the command stops at once, naming the package, instead of simulating first and then
     failing in another imageio plugin."""
-    import importlib.util
-
-    from apps import avatar
-
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else find_spec(name, *a)
