@@ -7,7 +7,8 @@
     python -m apps.avatar capture|track|estimate|appearance|animate|evaluate --out out/avatar [--smoke]
 
 ``simulate`` dresses the procedural mannequin (:class:`physavatar.body.Body`) in a garment (default: the
-DiffCloth skirt ``skirt1252.obj`` from the shared data folder), drives it through a motion and writes
+DiffCloth skirt ``skirt1252.obj`` from the shared data folder, or the embedded procedural skirt where that folder
+is absent; the command says which), drives it through a motion and writes
 ``sequence.npz`` (garment and body per frame), ``stats.json`` (per-step solver statistics), ``video.mp4``
 (orbiting camera) and, with ``--meshes obj|ply``, one garment mesh per frame.
 
@@ -22,14 +23,18 @@ status 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import os
 import sys
 from pathlib import Path
 
 from kernels import backend
+from physavatar import pipeline
+from physavatar import simulate as sim
+from physavatar.body import Body
+from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
+from physavatar.motion import MOTIONS, load_bvh, named_motion
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "garments"
-DEFAULT_GARMENT = DATA / "skirt1252.obj"
-MOTION_NAMES = ("walk", "turn", "raise", "jump")
 SMOKE_FRAMES = 3
 
 
@@ -37,7 +42,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m apps.avatar", description=__doc__.split("\n\n")[0])
     commands = parser.add_subparsers(dest="command", required=True)
     sim = commands.add_parser("simulate", help="simulate a garment on the moving mannequin")
-    sim.add_argument("--garment", type=Path, default=None, help="OBJ/PLY garment (default: skirt1252.obj)")
+    sim.add_argument(
+        "--garment",
+        type=Path,
+        default=None,
+        help=f"OBJ/PLY garment (default: {DEFAULT_GARMENT.name}, or the procedural skirt without the shared data)",
+    )
     sim.add_argument("--motion", default="walk", help="walk, turn, raise, jump or a .bvh file")
     sim.add_argument("--frames", type=int, default=100, help="simulated frames (steps of 1/fps s)")
     sim.add_argument("--out", type=Path, required=True, help="output folder")
@@ -93,65 +103,65 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _check_motion(name: str) -> None:
-    if name in MOTION_NAMES:
+    if name in MOTIONS:
         return
     path = Path(name)
     if path.suffix.lower() != ".bvh":
-        raise ValueError(f"--motion must be one of {', '.join(MOTION_NAMES)} or a .bvh file, got {name!r}")
+        raise ValueError(f"--motion must be one of {', '.join(MOTIONS)} or a .bvh file, got {name!r}")
     if not path.is_file():
         raise FileNotFoundError(f"motion file {path} does not exist")
 
 
-def _motion(name: str, skeleton, frames: int):
-    from physavatar import motion
-
-    if name in MOTION_NAMES:
-        make = {"walk": motion.walk, "turn": motion.turn, "raise": motion.raise_arms, "jump": motion.jump}[name]
-        clip = make(skeleton, fps=25.0)  # the clip's own duration keeps its timing (e.g. the walk's fade-in)
-        return clip if clip.num_frames > frames else make(skeleton, duration=frames / 25.0, fps=25.0)
-    return motion.load_bvh(Path(name), skeleton)
+def _check_out(out: Path) -> None:
+    """Refuse, before any work, an output folder that cannot be created or written."""
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        what = "--out" if existing == out else f"--out's parent {existing}"
+        raise ValueError(f"{what} is a file, not a folder; pass a folder path for the results (it is created)")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(f"cannot write into {existing}; pass an --out folder you may write to")
 
 
 def simulate_command(args: argparse.Namespace) -> None:
-    from physavatar import simulate as sim
-    from physavatar.body import Body
-    from physavatar.garment import load_garment, place_on_body, select_boundary
-
     frames = SMOKE_FRAMES if args.smoke else args.frames
     if frames < 1:
         raise ValueError(f"--frames must be at least 1, got {frames}")
+    width, height = args.video_size
+    if width < 1 or height < 1:
+        raise ValueError(f"--video-size must be two positive pixel counts W H, got {width} {height}")
     _check_motion(args.motion)
+    _check_out(args.out)
     sim.require_video_encoder()  # before the simulation, not after it
-    garment_path = args.garment
-    if garment_path is None:
-        if not DATA.is_dir():
-            raise FileNotFoundError(f"the default garment folder {DATA} is absent; pass --garment PATH")
-        garment_path = DEFAULT_GARMENT
-    if not garment_path.is_file():
-        raise FileNotFoundError(f"garment file {garment_path} does not exist; pass --garment PATH (OBJ or PLY)")
+    if args.garment is not None and not args.garment.is_file():
+        raise FileNotFoundError(f"garment file {args.garment} does not exist; pass --garment PATH (OBJ or PLY)")
     backend.init(args.device)
     body = Body.mannequin(spacing=0.03)
-    garment = place_on_body(load_garment(garment_path), body)
+    garment = default_garment(body) if args.garment is None else place_on_body(load_garment(args.garment), body)
     for note in garment.notes:
         print(f"{garment.name}: {note}", file=sys.stderr)
-    motion = _motion(args.motion, body.skeleton, frames)
+    if args.motion in MOTIONS:
+        motion = named_motion(args.motion, body.skeleton, frames)
+    else:
+        motion = load_bvh(Path(args.motion), body.skeleton)
     boundary = select_boundary(garment, body, mode=args.boundary)
-    result = sim.simulate(garment, body, motion, frames=min(frames, motion.num_frames - 1), boundary=boundary)
+    result = sim.simulate(garment, body, motion, frames=frames, boundary=boundary)
     args.out.mkdir(parents=True, exist_ok=True)
     sim.write_npz(result, args.out / "sequence.npz")
     sim.write_stats_json(result, args.out / "stats.json")
     if args.meshes:
         sim.write_meshes(result, args.out / "meshes", args.meshes)
-    size = (128, 96) if args.smoke else tuple(args.video_size)
+    size = (128, 96) if args.smoke else (width, height)
     sim.render_video(result, args.out / "video.mp4", size=size)
-    print(f"wrote {args.out}/sequence.npz, stats.json, video.mp4 ({result.garment_frames.shape[0]} frames)")
+    print(
+        f"wrote {args.out}/sequence.npz, stats.json, video.mp4 ({result.garment_frames.shape[0]} frames of the "
+        f"garment {garment.name!r})"
+    )
 
 
 def stage_command(args: argparse.Namespace) -> None:
-    import dataclasses
-
-    from physavatar import pipeline
-
+    _check_out(args.out)
     config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
     if args.frames is not None:
         config = dataclasses.replace(config, frames=args.frames)

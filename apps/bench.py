@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from apps.workloads import SIZES, Case, load_all
+from apps.workloads import SIZES, Case, WorkloadUnavailable, load_all
 from kernels import backend
 
 # Data-sheet peaks: DRAM bandwidth (bytes/s) and dense FP32 non-tensor-core throughput (FLOP/s).
@@ -177,7 +177,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
     records = []
     for i, name in enumerate(names, 1):
         print(f"[{i}/{len(names)}] {name} on {device} ({args.size})", file=sys.stderr, flush=True)
-        case = registry[name].setup(device, args.size)
+        try:
+            case = registry[name].setup(device, args.size)
+        except WorkloadUnavailable as reason:
+            print(f"[{i}/{len(names)}] {name} skipped: {reason}", file=sys.stderr, flush=True)
+            continue
         records.append(measure(name, case, device, args.size, reps))
         del case
     print_table(records)

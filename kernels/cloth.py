@@ -8,8 +8,8 @@ continuous collision detection (ACCD, Li et al. 2021) that bounds its line searc
 
 Conventions:
 
-* Every per-element Hessian is exact (closed form, no Gauss-Newton truncation); ``project=True`` replaces it by
-  its nearest positive semi-definite matrix (eigenvalues clamped at zero). The projection runs after the
+* Every per-element Hessian is exact (closed form, no Gauss-Newton truncation); :func:`project_psd` replaces it
+  by its nearest positive semi-definite matrix (eigenvalues clamped at zero). The projection runs after the
   kernel as one batched eigen-decomposition: cuSOLVER's batched Jacobi solver on CUDA (:mod:`kernels.cusolver`,
   about 3× faster than ``torch.linalg.eigh`` there, and it does not wait for the device), ``torch.linalg.eigh``
   (LAPACK) on the CPU. Measured with ``torch.linalg.eigh``, float32, 128² sheet (32 258 faces, 48 133 hinges) on
@@ -411,7 +411,6 @@ def membrane_energy(
     rest_area: torch.Tensor,
     mu: torch.Tensor | float,
     lam: torch.Tensor | float,
-    project: bool = False,
     stress_filter: str = "none",
 ) -> ElementTerms:
     """StVK membrane energy of each triangle, with per-vertex gradients and the element Hessian (§3.2).
@@ -435,7 +434,6 @@ def membrane_energy(
         rest_area: ``[F]`` rest areas, m².
         mu: ``[F]`` or scalar thickness-integrated shear modulus ``h μ``, N/m.
         lam: ``[F]`` or scalar thickness-integrated plane-stress ``h λ``, N/m.
-        project: replace each Hessian by its nearest PSD matrix (:func:`project_psd`).
         stress_filter: ``"none"`` (the exact Hessian), ``"clamp"`` or ``"abs"`` (:data:`STRESS_FILTERS`).
 
     Returns:
@@ -446,7 +444,7 @@ def membrane_energy(
     n, inputs = _membrane_inputs(x, faces, rest_inv, rest_area, mu, lam)
     out = _allocate(x, n, 3)
     _launch(_membrane_kernel, n, [*inputs, STRESS_FILTERS.index(stress_filter)], out)
-    return _finish(out, project)
+    return ElementTerms(*out)
 
 
 def membrane_energy_value(
@@ -631,14 +629,13 @@ def bending_energy(
     rest_angle: torch.Tensor,
     rest_weight: torch.Tensor,
     k_bend: torch.Tensor | float,
-    project: bool = False,
 ) -> ElementTerms:
     """Discrete-shell hinge bending energy, with gradients and exact Hessians (§3.2, [29, 102]).
 
     ``Ψ = k w̄ (θ − θ̄)²`` with ``θ`` the signed dihedral angle (0 flat, positive when the hinge is convex seen
     from the normal side, in ``(−π, π]``) and ``w̄ = 3‖ē‖²/Ā``. The Hessian is the exact one,
-    ``2 k w̄ (∇θ ∇θᵀ + (θ − θ̄) ∇²θ)``; it is indefinite away from the rest angle, so pass ``project=True`` for
-    a Newton solver.
+    ``2 k w̄ (∇θ ∇θᵀ + (θ − θ̄) ∇²θ)``; it is indefinite away from the rest angle, so a Newton solver makes it
+    PSD (:func:`project_psd`).
 
     Args:
         x: ``[V, 3]`` float32 or float64 positions, m.
@@ -646,7 +643,6 @@ def bending_energy(
         rest_angle: ``[H]`` rest angles ``θ̄``, rad.
         rest_weight: ``[H]`` weights ``w̄ = 3‖ē‖²/Ā``, 1.
         k_bend: ``[H]`` or scalar bending stiffness ``k`` (the paper's ``κ_b`` in the caller's scaling), J.
-        project: replace each Hessian by its nearest PSD matrix (:func:`project_psd`).
 
     Returns:
         :class:`ElementTerms` with ``energy [H]`` (J), ``grad [H, 4, 3]``, ``hess [H, 12, 12]``.
@@ -654,7 +650,7 @@ def bending_energy(
     n, inputs = _bending_inputs(x, hinges, rest_angle, rest_weight, k_bend)
     out = _allocate(x, n, 4)
     _launch(_bending_kernel, n, inputs, out)
-    return _finish(out, project)
+    return ElementTerms(*out)
 
 
 def bending_energy_value(
@@ -1345,7 +1341,6 @@ def contact_energy(
     ee_eps_x: torch.Tensor,
     dhat: float,
     stiffness: float,
-    project: bool = False,
 ) -> tuple[ElementTerms, ElementTerms]:
     """IPC contact potential ``κ Σ b(d_k)`` of point-triangle and mollified edge-edge pairs (Li et al. 2020).
 
@@ -1361,7 +1356,6 @@ def contact_energy(
         ee_eps_x: ``[Q]`` mollifier thresholds, m⁴.
         dhat: squared activation distance ``d̂²``, m² (1e-6 for the paper's 1 mm).
         stiffness: barrier stiffness ``κ``, J/m⁴ (``b`` is in m⁴).
-        project: replace each Hessian by its nearest PSD matrix (:func:`project_psd`).
 
     Returns:
         ``(point_triangle, edge_edge)`` :class:`ElementTerms`, energies ``[P]`` / ``[Q]`` (J), gradients
@@ -1372,7 +1366,7 @@ def contact_energy(
     ee = _allocate(x, ee_pairs.shape[0], 4)
     _launch(_point_triangle_barrier_kernel, pt_pairs.shape[0], pt_inputs, pt)
     _launch(_edge_edge_barrier_kernel, ee_pairs.shape[0], ee_inputs, ee)
-    return _finish(pt, project), _finish(ee, project)
+    return ElementTerms(*pt), ElementTerms(*ee)
 
 
 def contact_energy_value(
@@ -1728,11 +1722,6 @@ def _allocate(x: torch.Tensor, n: int, nv: int) -> tuple[torch.Tensor, torch.Ten
         torch.empty(n, nv, 3, dtype=x.dtype, device=x.device),
         torch.empty(n, 3 * nv, 3 * nv, dtype=x.dtype, device=x.device),
     )
-
-
-def _finish(out, project: bool) -> ElementTerms:
-    energy, grad, hess = out
-    return ElementTerms(energy, grad, project_psd(hess) if project else hess)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -24,10 +24,10 @@ Solver. ``R`` is bilinear: linear in ``ρ`` for fixed light and linear in ``(L_a
 the L2 problem of Eq. 8 is solved by alternating least squares: each half-step is the exact minimiser in
 closed form (one division per face and channel, one 2×2 non-negative least squares per channel), the loss never
 increases, there is no learning rate to tune, and it converges in about ten sweeps where Adam needs thousands
-of steps (the paper: 2000, A.4.3; on the test scene below ALS takes 9 sweeps and 1 s including the ray tracing,
-Adam 2000 steps and 20 s for the same loss). The Adam path is kept (``method="adam"``: the paper's schedule, lr 0.01
-halved every 500 steps, albedo clipped to [0, 1], L1 or L2 loss) on the same differentiable torch renderer
-:func:`render_pixels`, for losses without a closed form.
+of steps (the paper: 2000, A.4.3; on the test scene below ALS takes 9 sweeps, Adam 2000 steps and some 20 times
+longer for the same loss, ``docs/benchmarks.md``). The Adam path is kept (``method="adam"``: the paper's
+schedule, lr 0.01 halved every 500 steps, albedo clipped to [0, 1], L1 or L2 loss) on the same differentiable torch
+renderer :func:`render_pixels`, for losses without a closed form.
 
 Scale ambiguity. ``ρ_c · L_c`` is all the images determine, per channel ``c``: ``(k ρ_c, L_{a,c}/k, L_{s,c}/k)``
 renders the same images for any ``k > 0``. The estimate is reported in the gauge ``L_{a,c} + L_{s,c} =

@@ -35,9 +35,7 @@ Files (:func:`write_capture`): a NeRF-synthetic style ``transforms.json`` (share
 ``file_path``, ``mask_path``, ``transform_matrix``, ``camera`` and ``time_index``), 8-bit PNG images and masks,
 and ``truth.npz`` holding what evaluation needs and the pipeline must not see (meshes, albedo, parameters).
 
-Cost (measured on this project's 2-core CPU, Warp on one thread, torch on one): primary rays cast at about
-4.5·10⁶ rays/s; a pixel that sees the scene costs 2 + ``ao_samples`` rays. One 256×256 view of the mannequin in
-the procedural skirt (17.7k faces, 4.9k covered pixels) with 16 occlusion rays renders in 0.11 s.
+Cost: a pixel that sees the scene costs 2 + ``ao_samples`` rays (figures in ``docs/benchmarks.md``).
 """
 
 from __future__ import annotations

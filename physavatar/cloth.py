@@ -40,8 +40,8 @@ Linear solver: a direct sparse LU on the CPU (SciPy's SuperLU on the host; the m
 ordering with diagonal pivots); on CUDA cuDSS's sparse Cholesky where it is installed (:mod:`kernels.cudss`; the
 pattern is analysed once and refactored every Newton iteration), else a dense Cholesky (cuSOLVER) up to
 :data:`DENSE_MAX_DOFS` and conjugate gradients with a 3×3 block-Jacobi preconditioner beyond. On skirt7271's 11k-DOF
-Newton matrix on an H100: about 3 ms with cuDSS (2.2 ms of it the factorisation, 0.5 ms the solve), 24 ms dense,
-418 ms CG. ``ClothConfig.linear_solver`` overrides. Every Newton system is factored anew: the previous system's
+Newton matrix cuDSS is the fastest by an order of magnitude (figures in ``docs/benchmarks.md``).
+``ClothConfig.linear_solver`` overrides. Every Newton system is factored anew: the previous system's
 Cholesky factor as a CG preconditioner reached a relative residual of 1e-8 within 6 iterations for only 2 of 75
 systems of the 1252-face skirt walking (contacts and the filtered element Hessians change too much between
 iterations). Nor does it serve an inexact Newton method: solving each system by CG preconditioned with the first
@@ -131,8 +131,7 @@ class ClothConfig:
             the Hessian's only indefinite term (``stress_filter`` of :func:`kernels.cloth.membrane_energy`). The
             stress filter saves the eigensolver but converges more slowly: over the first 14 frames of the walk
             above 118 Newton iterations against 113; the 8×8 sheet dropped on a sphere of the tests, 8 frames: 137
-            against 119. On an H100, frames 4-13 of the walk: 13.0-14.1 ms per Newton iteration against 14.9, but 87
-            iterations against 81, so a frame takes about as long (113-123 ms, two runs, against 121 ms); the
+            against 119. Its cheaper iterations then make a frame take about as long (``docs/benchmarks.md``); the
             eigen-decomposition stays the default for its steadier convergence.
         gravity: gravitational acceleration ``[3]``, m/s².
         static: minimise ``Ψ − Σ m g·x`` without inertia or friction (a static equilibrium solve; needs
@@ -140,8 +139,8 @@ class ClothConfig:
         linear_solver: ``"direct"`` (SuperLU on the host), ``"cudss"`` (cuDSS's sparse Cholesky on CUDA, where
             ``nvidia-cudss-cu13`` or ``-cu12`` is installed), ``"dense"`` (dense Cholesky on the device, cuSOLVER on
             CUDA), ``"cg"`` (block-Jacobi CG in torch) or ``"auto"``: direct on the CPU; on CUDA cuDSS where it
-            loads, else dense up to :data:`DENSE_MAX_DOFS` garment DOFs (1 GB and ~20 ms per factorisation for the
-            3757-vertex skirt7271 on an H100, where CG needed thousands of iterations), CG beyond.
+            loads, else dense up to :data:`DENSE_MAX_DOFS` garment DOFs (about 1 GB for the 3757-vertex skirt7271,
+            where CG needed thousands of iterations), CG beyond.
         cg_tolerance: relative residual at which CG stops.
         cg_max_iterations: cap on CG iterations per Newton iteration.
         ccd_eta: ACCD's ``η``: a step may close at most ``1 − η`` of any pair's gap (Codim-IPC: 0.1).
@@ -149,11 +148,8 @@ class ClothConfig:
             (start to inertial target, or to its target for kinematic vertices). The candidates are found once and
             serve every Newton iteration whose sweep stays within that reach; a sweep that leaves it finds them
             anew. Larger margins mean fewer searches and more candidates to filter. ``None``: 5 mm on CUDA, 2 mm on
-            the CPU, where filtering many candidates costs more than searching again. Measured on skirt7271
-            walking, the same 10 frames (81 Newton iterations) on an H100: 159.5 ms per frame with 5 mm, 171.3
-            with 3 mm, 173.9 with 2 mm; the same 6 frames on a 2-core CPU: 3.60 s with 2 mm, 3.78 s with 5 mm. With
-            the Newton loop as CUDA graphs, frames 4-33: 59.4-65.0 ms (3 runs) with 5 mm and 53 searches, 59.0
-            with 3 mm and 70, 67.0 with 2 mm and 84.
+            the CPU, where filtering many candidates costs more than searching again: those were the fastest
+            margins of skirt7271 walking on each device (``docs/benchmarks.md``).
     """
 
     density: float = 472.641509
@@ -1156,7 +1152,7 @@ def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
 
     The fill-reducing ordering of ``hᵀ + h`` only pays off if the factorisation keeps to the diagonal: with
     SuperLU's default threshold pivoting it swaps rows of this matrix, loses the ordering and fills in ~8× slower
-    (0.17 s against 0.02 s for a 2k-DOF skirt Hessian). An SPD matrix needs no pivoting, so the diagonal pivot
+    (``docs/benchmarks.md``). An SPD matrix needs no pivoting, so the diagonal pivot
     threshold is 0 (a Cholesky-like LDU); should a pivot vanish in floating point, the solve is repeated with
     SuperLU's partial pivoting.
     """
@@ -1214,10 +1210,9 @@ class _NewtonMatrices:
     descent direction), and the Newton loop, which reads the count of such blocks with its other flags, keeps that
     matrix and defers the growth (:meth:`defer`): at the next step's :meth:`prepare` the pattern grows by every
     block of the elements at hand and of the contact candidates within :data:`REACH` · d̂. cuDSS analyses a pattern
-    anew whenever it changes (60 ms for skirt7271 on an H100, against 2 ms for a numeric factorisation; 550 ms
-    against 20 ms for the 150k DOFs of a 50k-vertex sheet), so the pattern grows at most once a step and outlives
-    the step: it restarts from the garment's elements only when the free vertices change or when contacts have
-    doubled it.
+    anew whenever it changes, at some 30 times the cost of a numeric factorisation (``docs/benchmarks.md``), so the
+    pattern grows at most once a step and outlives the step: it restarts from the garment's elements only when the
+    free vertices change or when contacts have doubled it.
 
     Each element kind's Hessians are PSD-filtered by one batched eigensolver call (:func:`kernels.cloth.project_psd`),
     then scattered by one Warp launch (:mod:`kernels.assembly`).
@@ -1363,13 +1358,13 @@ class _NewtonLoop:
     * ``trial``: ``E`` at ``X + α p``.
 
     An iteration launches about 270 torch operations and 30 Warp kernels. On an H100 their launches from Python cost
-    more than their kernels (skirt7271 walking: 14 ms of wall time per Newton iteration, 6.3 ms of kernels); replayed
-    as four graphs, they cost the host a few launches. A graph keeps the shapes, addresses and Python scalars it was
-    captured with, so on CUDA every pair list lives in a buffer of fixed capacity, padded with the phantom pair
-    (:data:`_PHANTOM`), and the selections (the sweep's candidates, the active contacts) are compacted into such
-    buffers on the device (:func:`_compact`). A count beyond its buffer grows the buffer (:func:`_capacity`) and runs
-    the phases again; new buffers, a new pattern or a new ``Δt`` capture the graphs anew. On the CPU the lists have
-    their exact sizes and the flags are read between the phases, so the CCD and the trial run only when needed.
+    more than their kernels (``docs/benchmarks.md``); replayed as four graphs, they cost the host a few launches. A
+    graph keeps the shapes, addresses and Python scalars it was captured with, so on CUDA every pair list lives in a
+    buffer of fixed capacity, padded with the phantom pair (:data:`_PHANTOM`), and the selections (the sweep's
+    candidates, the active contacts) are compacted into such buffers on the device (:func:`_compact`). A count
+    beyond its buffer grows the buffer (:func:`_capacity`) and runs the phases again; new buffers, a new pattern or a
+    new ``Δt`` capture the graphs anew. On the CPU the lists have their exact sizes and the flags are read between
+    the phases, so the CCD and the trial run only when needed.
     """
 
     def __init__(self, solver: SolverCloth, static: bool | None = None):
@@ -1669,9 +1664,9 @@ def _keys(elements: list[_Element], dof: torch.Tensor, n: int) -> list[torch.Ten
 def _filtered(elements: list[_Element]) -> list[_Element]:
     """The non-empty ``elements`` with their Hessians PSD-filtered.
 
-    One batched eigensolver call per element kind: a call over bending and contact Hessians together took frames
-    4-5 of the walk (cuSOLVER's batched ``syevd``, contact Hessians many orders of magnitude stiffer than the
-    bending's) from 151 and 133 ms to 227 ms on an H100."""
+    One batched eigensolver call per element kind: one call over bending and contact Hessians together (contact
+    Hessians many orders of magnitude stiffer than the bending's) slowed cuSOLVER's batched ``syevd`` down
+    (``docs/benchmarks.md``)."""
     out = []
     for element in elements:
         if not element.index.shape[0]:

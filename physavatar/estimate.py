@@ -46,10 +46,10 @@ from physavatar.cloth import (
     SENSITIVITY_PARAMETERS,
     STIFFNESS_RANGE,
     ClothConfig,
-    ClothControl,
     ClothState,
     SolverCloth,
 )
+from physavatar.drive import BodyDriver
 from physavatar.simulate import SimulationResult
 
 __all__ = [
@@ -285,6 +285,10 @@ class EstimationProblem:
         """Step size ``1 / fps``, s."""
         return 1.0 / self.fps
 
+    def driver(self) -> BodyDriver:
+        """The body and boundary targets of every frame, as the steps of a rollout take them."""
+        return BodyDriver(self.body_frames, self.boundary_index, self.boundary_targets, self.fps)
+
     @staticmethod
     def from_simulation(
         result: SimulationResult, config: ClothConfig, rest_vertices: torch.Tensor | None = None
@@ -351,9 +355,7 @@ def rollout(
     dev = backend.torch_device()
     parameters = tuple(parameters)
     solver = SolverCloth(problem.rest_vertices, problem.faces, params.config(problem.config), problem.body_faces)
-    body = problem.body_frames.to(dev)
-    index = problem.boundary_index.to(dev)
-    targets = problem.boundary_targets.to(dev)
+    driver = problem.driver().to(dev)
     x0 = problem.reference[0].to(dev)
     state = ClothState(x0.clone(), torch.zeros_like(x0))
     frames = [x0.cpu()]
@@ -361,9 +363,9 @@ def rollout(
         s_x = torch.zeros(*x0.shape, len(parameters), dtype=F64, device=dev)
         s_v = torch.zeros_like(s_x)
         sens = [s_x.cpu()]
-    dt = problem.dt
+    dt = driver.dt
     for t in range(problem.frames - 1):
-        control = ClothControl(body[t], body[t + 1], index, targets[t + 1])
+        control = driver.control(t)
         new = ClothState(state.x.clone(), state.v.clone())
         solver.step(state, new, control, dt)
         if not bool(torch.isfinite(new.x).all()):

@@ -23,7 +23,10 @@ from physavatar.body import Body, linear_blend_skinning
 
 __all__ = [
     "BOUNDARY_MODES",
+    "DEFAULT_GARMENT",
+    "SHARED_GARMENTS",
     "Garment",
+    "default_garment",
     "boundary_targets",
     "load_garment",
     "place_on_body",
@@ -32,6 +35,10 @@ __all__ = [
 ]
 
 BOUNDARY_MODES = ("waist", "shoulders", "auto")
+SHARED_GARMENTS = Path(__file__).resolve().parents[2] / "shared" / "data" / "garments"
+"""The DiffCloth garments of the project's read-only data folder beside the checkout; absent in a fresh clone."""
+DEFAULT_GARMENT = SHARED_GARMENTS / "skirt1252.obj"
+"""The garment simulated when none is given, where the shared data folder is present."""
 _PLAUSIBLE_HEIGHT = (0.1, 2.0)  # m, the vertical extent of a garment worn by an adult
 _TYPICAL_HEIGHT = 0.6  # m, the extent "auto" scaling aims for among powers of ten
 _UNIT_NAMES = {-1: "decimetres", -2: "centimetres", -3: "millimetres", 1: "decametres"}
@@ -413,6 +420,27 @@ def boundary_targets(
         weights = body.surface_weights(rest_positions.to(body.vertices))
     transforms = body.skeleton.skinning_transforms(rotations, root_translation)
     return linear_blend_skinning(rest_positions.to(transforms), weights, transforms)
+
+
+def default_garment(body: Body) -> Garment:
+    """The garment worn when none is given, placed on ``body`` (:func:`place_on_body`): :data:`DEFAULT_GARMENT` where
+    the shared data folder holds it, else the embedded :func:`procedural_skirt`, so a fresh clone runs too.
+
+    Its ``notes`` say which one it is.
+    """
+    if DEFAULT_GARMENT.is_file():
+        garment = load_garment(DEFAULT_GARMENT)
+        garment = Garment(
+            garment.vertices,
+            garment.faces,
+            garment.name,
+            (f"the default garment {DEFAULT_GARMENT.name}", *garment.notes),
+        )
+    else:
+        skirt = procedural_skirt(body)
+        note = f"the embedded procedural skirt ({skirt.vertices.shape[0]} vertices): {DEFAULT_GARMENT} is absent"
+        garment = Garment(skirt.vertices, skirt.faces, skirt.name, (note,))
+    return place_on_body(garment, body)
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -29,6 +29,7 @@ __all__ = [
     "Motion",
     "jump",
     "load_bvh",
+    "named_motion",
     "raise_arms",
     "save_bvh",
     "turn",
@@ -614,3 +615,21 @@ def save_bvh(motion: Motion, path: str | Path, skeleton: Skeleton) -> None:
 
 MOTIONS: dict[str, Callable[..., Motion]] = {"walk": walk, "turn": turn, "raise": raise_arms, "jump": jump}
 """The procedural motions by name."""
+
+
+def named_motion(name: str, skeleton: Skeleton, steps: int, fps: float = 25.0) -> Motion:
+    """The procedural motion ``name`` (a key of :data:`MOTIONS`) holding at least ``steps + 1`` poses.
+
+    The clip keeps its own duration, and so its timing (e.g. the walk's one-second fade-in), when that already
+    covers ``steps`` steps of ``1 / fps`` s; a longer request stretches it to exactly ``steps + 1`` poses.
+
+    Raises:
+        ValueError: an unknown name, or ``steps`` below 1.
+    """
+    if name not in MOTIONS:
+        raise ValueError(f"motion must be one of {', '.join(MOTIONS)}, got {name!r}")
+    if steps < 1:
+        raise ValueError(f"a motion needs at least 1 step (2 poses), got {steps}")
+    make = MOTIONS[name]
+    clip = make(skeleton, fps=fps)
+    return clip if clip.num_frames > steps else make(skeleton, duration=steps / fps, fps=fps)

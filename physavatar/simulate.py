@@ -29,8 +29,9 @@ import trimesh
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
 from physavatar.body import Body
-from physavatar.cloth import ClothConfig, ClothControl, SolverCloth, StepStats
-from physavatar.garment import Garment, boundary_targets, select_boundary
+from physavatar.cloth import ClothConfig, SolverCloth, StepStats
+from physavatar.drive import BodyDriver
+from physavatar.garment import Garment, select_boundary
 from physavatar.motion import Motion
 
 __all__ = [
@@ -103,30 +104,20 @@ def simulate(
         ValueError: too few motion frames, or a step that produced NaN.
     """
     device = backend.init(device)
-    torch_device = backend.torch_device()
     config = config or ClothConfig()
     frames = motion.num_frames - 1 if frames is None else int(frames)
-    if frames < 1 or frames + 1 > motion.num_frames:
-        raise ValueError(
-            f"frames ({frames}) must lie in 1..{motion.num_frames - 1}: the motion holds {motion.num_frames} poses "
-            "and each step needs the next one; make the motion longer or ask for fewer frames"
-        )
-    dt = 1.0 / motion.fps
+    BodyDriver.check_steps(motion, frames)
     boundary = select_boundary(garment, body) if boundary is None else boundary.long().cpu()
-    rotations = motion.rotations[: frames + 1]
-    translation = motion.root_translation[: frames + 1]
-    body_frames = body.skin(rotations, translation)  # [T, B, 3]
-    targets = boundary_targets(body, garment.vertices[boundary], rotations, translation)  # [T, D, 3]
+    driver = BodyDriver.from_motion(body, motion, garment.vertices, boundary, frames)
+    dt = driver.dt
 
     solver = SolverCloth(garment.vertices, garment.faces, config, body.faces)
     state = solver.initial_state()
     out = [state.x.clone()]
-    index = boundary.to(torch_device)
-    body_dev = body_frames.to(torch_device)
-    targets_dev = targets.to(torch_device)
+    on_device = driver.to(backend.torch_device())
     stats, wall = [], []
     for t in range(frames):
-        control = ClothControl(body_dev[t], body_dev[t + 1], index, targets_dev[t + 1])
+        control = on_device.control(t)
         start = time.perf_counter()
         step = solver.step(state, state, control, dt)
         wall.append(time.perf_counter() - start)
@@ -144,7 +135,7 @@ def simulate(
             )
     return SimulationResult(
         torch.stack(out).cpu(),
-        body_frames.cpu(),
+        driver.body_frames.cpu(),
         garment.faces.long().cpu(),
         body.faces.long().cpu(),
         boundary.cpu(),
@@ -256,16 +247,22 @@ def render_video(
     ground_y = float(body[:, :, 1].min()) - 1e-3
     cx, cz = 0.5 * float(lo[0] + hi[0]), 0.5 * float(lo[2] + hi[2])
     ground = torch.tensor(
-        [[cx - extent, ground_y, cz - extent], [cx + extent, ground_y, cz - extent],
-         [cx + extent, ground_y, cz + extent], [cx - extent, ground_y, cz + extent]],
+        [
+            [cx - extent, ground_y, cz - extent],
+            [cx + extent, ground_y, cz - extent],
+            [cx + extent, ground_y, cz + extent],
+            [cx - extent, ground_y, cz + extent],
+        ],
         dtype=torch.float64,
     )
     faces = torch.cat([result.garment_faces, result.body_faces + v, torch.tensor([[0, 3, 2], [0, 2, 1]]) + v + b])
-    colors = torch.cat([
-        torch.tensor(GARMENT_COLOR).expand(result.garment_faces.shape[0], 3),
-        torch.tensor(BODY_COLOR).expand(result.body_faces.shape[0], 3),
-        torch.tensor(GROUND_COLOR).expand(2, 3),
-    ]).to(device)
+    colors = torch.cat(
+        [
+            torch.tensor(GARMENT_COLOR).expand(result.garment_faces.shape[0], 3),
+            torch.tensor(BODY_COLOR).expand(result.body_faces.shape[0], 3),
+            torch.tensor(GROUND_COLOR).expand(2, 3),
+        ]
+    ).to(device)
 
     def scene(t: int) -> torch.Tensor:
         return torch.cat([garment[t], body[t], ground]).to(device, torch.float32)
@@ -286,8 +283,9 @@ def render_video(
             angle = 2.0 * math.pi * turns * t / max(frames, 1)
             eye = target + torch.tensor([3.2 * math.sin(angle), 0.5, 3.2 * math.cos(angle)], device=device)
             forward = torch.nn.functional.normalize(target - eye, dim=0)
-            right = torch.nn.functional.normalize(torch.linalg.cross(forward, torch.tensor([0.0, 1.0, 0.0],
-                                                                                            device=device)), dim=0)
+            right = torch.nn.functional.normalize(
+                torch.linalg.cross(forward, torch.tensor([0.0, 1.0, 0.0], device=device)), dim=0
+            )
             up = torch.linalg.cross(right, forward)
             directions = forward + px[..., None] * right + py[..., None] * up
             origins = eye.expand(height * width, 3)

@@ -2,7 +2,8 @@
 
 A workload is a function ``setup(device, size) -> Case`` registered under a name with
 :func:`workload`. ``setup`` allocates everything; the returned ``Case.run`` does only the timed work,
-and ``Case.reference`` does the same work in pure torch/NumPy, timed in the same run.
+and ``Case.reference`` does the same work in pure torch/NumPy, timed in the same run. A ``setup`` that lacks what it
+needs on this machine (a data file) raises :class:`WorkloadUnavailable`; the suite then skips it and says why.
 """
 
 from __future__ import annotations
@@ -12,9 +13,13 @@ import pkgutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-__all__ = ["SIZES", "Case", "Workload", "load_all", "workload"]
+__all__ = ["SIZES", "Case", "Workload", "WorkloadUnavailable", "load_all", "workload"]
 
 SIZES = ("smoke", "paper", "large")
+
+
+class WorkloadUnavailable(RuntimeError):
+    """A workload cannot run on this machine; the message names what is missing and how to provide it."""
 
 
 @dataclass(frozen=True)

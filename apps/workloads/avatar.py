@@ -2,14 +2,12 @@
 
 ``splat_fwd_bwd``: forward and backward rasterization of the mesh-aligned Gaussians of the dressed mannequin
 (one per face of the skirt and the body) into 8 views at 512×512 (smoke: the skirt's alone, 2 views at 64×64); the
-reference is the
-dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
+reference is the dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
 ``views × pixels × Gaussians`` tensor).
 
 ``track_frame``: one frame of tracking as the pipeline tracks the skirt (:func:`physavatar.track.track`'s per-frame
 optimisation with :data:`physavatar.pipeline.COARSE_MESH_TRACKING`: 16 Gaussians per face, the default 100 Adam
-iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations). In the
-pipeline's full-size tracking on an H100 a frame took 1.93 s (median of frames 2-24).
+iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations).
 
 ``estimate``: the analytic Levenberg–Marquardt fit of (κ_s, κ_b) to 24 exact frames of the skirt on the walking
 mannequin (smoke: 6 frames of a coarser skirt), from κ_s = 2, κ_b = 0.5; ``extra`` holds the time at which both
@@ -26,14 +24,21 @@ from apps.workloads import Case, workload
 from kernels import backend
 from kernels.gaussian_splat import rasterize_gaussians
 from kernels.reference.gaussian_splat import rasterize_gaussians_torch
+from physavatar.body import Body
+from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
+from physavatar.drive import BodyDriver
+from physavatar.estimate import SYNTHETIC_FABRIC, EstimationProblem, FabricParameters, estimate_analytic, rollout
+from physavatar.garment import procedural_skirt, select_boundary
+from physavatar.gaussians import GaussianAppearance, face_frames, project_gaussians
+from physavatar.motion import walk
+from physavatar.pipeline import COARSE_MESH_TRACKING
+from physavatar.simulate import simulate
+from physavatar.track import track
 
 _VIEWS = {"smoke": (2, 64), "paper": (8, 512), "large": (16, 512)}
 
 
 def _dressed(rings: int = 10, segments: int = 28):
-    from physavatar.body import Body
-    from physavatar.garment import procedural_skirt
-
     body = Body.mannequin(spacing=0.03)
     skirt = procedural_skirt(body, rings=rings, segments=segments)
     return body, skirt
@@ -41,9 +46,6 @@ def _dressed(rings: int = 10, segments: int = 28):
 
 @workload("splat_fwd_bwd", "mesh-aligned Gaussians of the dressed mannequin: rasterize forward + backward")
 def bench_splat(device: str, size: str) -> Case:
-    from physavatar.capture import CameraRig
-    from physavatar.gaussians import GaussianAppearance, face_frames, project_gaussians
-
     views, pixels = _VIEWS[size]
     body, skirt = _dressed()
     dev = backend.torch_device()
@@ -94,17 +96,10 @@ def bench_splat(device: str, size: str) -> Case:
 
 @workload("track_frame", "one tracking frame: Adam on the skirt's vertices and colours against every view")
 def bench_track_frame(device: str, size: str) -> Case:
-    from physavatar import motion
-    from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
-    from physavatar.estimate import SYNTHETIC_FABRIC
-    from physavatar.pipeline import COARSE_MESH_TRACKING
-    from physavatar.simulate import simulate
-    from physavatar.track import track
-
     views, pixels = (4, 64) if size == "smoke" else (8, 256)
     iterations = 10 if size == "smoke" else COARSE_MESH_TRACKING.iterations
     body, skirt = _dressed()
-    clip = motion.walk(body.skeleton, fps=25.0)
+    clip = walk(body.skeleton, fps=25.0)
     result = simulate(skirt, body, clip, config=SYNTHETIC_FABRIC, frames=2, progress=False)
     rig = CameraRig.ring(views, 2.2, 0.25, (0.0, 0.86, 0.0), pixels, pixels, fov_deg=24.0)
     albedo = garment_albedo(skirt.vertices, skirt.faces, pattern="checks", bands=6)
@@ -145,27 +140,20 @@ def bench_track_frame(device: str, size: str) -> Case:
 
 @workload("estimate", "Levenberg-Marquardt fit of (kappa_s, kappa_b) to exact frames with analytic sensitivities")
 def bench_estimate(device: str, size: str) -> Case:
-    from physavatar.estimate import SYNTHETIC_FABRIC, EstimationProblem, FabricParameters, estimate_analytic, rollout
-    from physavatar.garment import boundary_targets, select_boundary
-    from physavatar.motion import walk
-
     frames = 6 if size == "smoke" else 24
     body, skirt = _dressed(*((5, 14) if size == "smoke" else (10, 28)))
     boundary = select_boundary(skirt, body, mode="waist")
-    clip = walk(body.skeleton, fps=25.0)
-    rotations, translation = clip.rotations[:frames], clip.root_translation[:frames]
-    body_frames = body.skin(rotations, translation)
-    targets = boundary_targets(body, skirt.vertices[boundary], rotations, translation)
+    driver = BodyDriver.from_motion(body, walk(body.skeleton, fps=25.0), skirt.vertices, boundary, frames - 1)
     truth = FabricParameters.from_config(SYNTHETIC_FABRIC)
     base = EstimationProblem(
         skirt.vertices,
         skirt.faces,
         skirt.vertices.expand(frames, -1, -1),
-        body_frames,
+        driver.body_frames,
         body.faces,
-        boundary,
-        targets,
-        25.0,
+        driver.boundary_index,
+        driver.boundary_targets,
+        driver.fps,
         SYNTHETIC_FABRIC,
     )
     reference = rollout(base, truth).frames

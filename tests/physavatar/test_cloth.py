@@ -4,7 +4,18 @@ import pytest
 import torch
 
 from kernels import backend, cudss
-from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
+from kernels.reference.assembly import newton_matrix
+from physavatar.cloth import (
+    PHASES,
+    ClothConfig,
+    ClothControl,
+    ClothState,
+    SolverCloth,
+    _Element,
+    _NewtonLoop,
+    _NewtonMatrices,
+    bending_stiffness,
+)
 from physavatar.shapes import grid_sheet, icosphere
 
 F64 = torch.float64
@@ -217,8 +228,6 @@ def test_fixed_shape_newton_loop_takes_the_exact_lists_steps(device):
     CUDA (sums in atomics order; 1.3e-7 m apart after 9 steps on an H100, against Newton's tolerance of 4e-4 m a
     step). Buffers start too small for the contacts, so that each kind of growth runs: the iteration whose active
     pairs overflow runs again, and so do the phases whose sweep candidates overflow."""
-    from physavatar.cloth import _NewtonLoop
-
     runs = {}
     for static in (False, True):
         solver, control, _, _ = _sheet_over_sphere(10)
@@ -291,9 +300,6 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
     """The Newton matrices keep the garment's pattern; a self-contact joining two vertices for the first time grows it
     once, and it stays for the next step (cuDSS analyses it once). New free vertices restart it. Every matrix is the
     dense sum of its blocks, with the kinematic vertices' blocks on the right-hand side."""
-    from kernels.reference.assembly import newton_matrix
-    from physavatar.cloth import _Element, _NewtonMatrices
-
     _, faces = grid_sheet(3, 3, 0.1)  # 9 vertices
     torch_device = backend.torch_device()
     faces = faces.to(torch_device, torch.int32)

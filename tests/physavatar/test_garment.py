@@ -5,6 +5,7 @@ import pytest
 import torch
 import trimesh
 
+from physavatar import garment as garment_module
 from physavatar.body import Body
 from physavatar.garment import boundary_targets, load_garment, place_on_body, procedural_skirt, select_boundary
 
@@ -145,3 +146,13 @@ def test_procedural_skirt_is_a_manifold_tube_clear_of_the_body(body):
     assert torch.equal(ring, torch.arange(16))
     with pytest.raises(ValueError, match="rings >= 2"):
         procedural_skirt(body, rings=1)
+
+
+def test_default_garment_is_the_procedural_skirt_without_the_shared_data(body, tmp_path, monkeypatch):
+    """A fresh clone has no shared data folder: the default garment is then the embedded skirt, and says so."""
+    monkeypatch.setattr(garment_module, "DEFAULT_GARMENT", tmp_path / "absent" / "skirt1252.obj")
+    garment = garment_module.default_garment(body)
+    skirt = procedural_skirt(body)
+    assert garment.name == "skirt" and torch.equal(garment.faces, skirt.faces)
+    assert "procedural skirt" in garment.notes[0] and "is absent" in garment.notes[0]
+    assert float(body.signed_distance(garment.vertices).min()) > 0.0  # placed outside the body

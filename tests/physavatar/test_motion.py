@@ -7,7 +7,7 @@ import torch
 
 from kernels import backend
 from physavatar.body import Skeleton
-from physavatar.motion import MOTIONS, Motion, jump, load_bvh, save_bvh, turn, walk
+from physavatar.motion import MOTIONS, Motion, jump, load_bvh, named_motion, save_bvh, turn, walk
 
 MAX_ANGULAR_SPEED = 20.0  # rad/s, about the peak knee extension speed of a human jump
 
@@ -159,3 +159,12 @@ def test_bad_motion_arguments_raise(skeleton):
     other = Skeleton(skeleton.names[:2], skeleton.parents[:2], torch.zeros(2, 3), torch.zeros(2, 3))
     with pytest.raises(ValueError, match="made for another skeleton"):
         walk(skeleton).joint_positions(other)
+
+
+def test_named_motion_keeps_its_clip_or_stretches_it_to_the_steps(skeleton):
+    clip = named_motion("turn", skeleton, steps=10)
+    assert torch.equal(clip.rotations, turn(skeleton).rotations)  # 3 s hold 75 steps: the clip's own timing
+    longer = named_motion("turn", skeleton, steps=100)
+    assert longer.num_frames == 101 and longer.fps == 25.0
+    with pytest.raises(ValueError, match="motion must be one of walk, turn, raise, jump, got 'dance'"):
+        named_motion("dance", skeleton, steps=10)

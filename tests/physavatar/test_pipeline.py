@@ -30,6 +30,8 @@ def test_pipeline_writes_every_stage_and_the_table(experiment):
     out, log = experiment
     for stage in ("capture", "track", "estimate", "appearance", "animate", "evaluate"):
         assert f"[{stage}] done in" in log
+    # the capture's progress counts its 6 frames from 1 to 6
+    assert [line for line in log.splitlines() if line.startswith("[capture] frame")][-1] == "[capture] frame 6/6"
     frames = json.loads((out / "capture" / "transforms.json").read_text())["frames"]
     assert len(frames) == 6 * 4  # frames × cameras
     tracking = json.loads((out / "track" / "tracking.json").read_text())
@@ -51,6 +53,9 @@ def test_pipeline_writes_every_stage_and_the_table(experiment):
     assert chamfer["full"] < chamfer["without_physics"] < chamfer["lbs"], chamfer  # the order of Table 2
     markdown = (out / "evaluate" / "report.md").read_text()
     assert "| PhysAvatar (full) |" in markdown and "κ_s/ρ" in markdown
+    # smoke-size numbers are labelled as meaningless, in both reports
+    assert report["smoke_size"] is True and "mean nothing" in report["note"]
+    assert "Smoke size" in markdown and "mean nothing" in markdown
     for image in (
         "evaluate/chamfer.png",
         "evaluate/metrics.png",

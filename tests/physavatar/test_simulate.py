@@ -1,5 +1,6 @@
 """A skirt on the walking mannequin (PhysAvatar §3.2, Eq. 5) and the `apps.avatar simulate` command."""
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -10,8 +11,9 @@ import numpy as np
 import pytest
 import torch
 
+from apps import avatar
 from physavatar.body import Body
-from physavatar.garment import load_garment, place_on_body, procedural_skirt, select_boundary
+from physavatar.garment import DEFAULT_GARMENT, load_garment, place_on_body, procedural_skirt, select_boundary
 from physavatar.motion import walk
 from physavatar.simulate import simulate, write_meshes, write_npz, write_stats_json
 
@@ -126,10 +128,13 @@ def test_simulate_refuses_more_frames_than_the_motion(device, shared_data, body)
         simulate(skirt, body, walk(body.skeleton), frames=200, device=device, progress=False)
 
 
-def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, shared_data, tmp_path):
+def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, tmp_path):
+    """Runs with or without the shared data folder: without it the default garment is the embedded skirt."""
     out = tmp_path / "smoke"
     result = _run("simulate", "--smoke", "--out", str(out), "--device", device)
     assert result.returncode == 0, result.stderr
+    garment = "skirt1252" if DEFAULT_GARMENT.is_file() else "skirt"
+    assert f"frames of the garment '{garment}'" in result.stdout
     sequence = np.load(out / "sequence.npz")
     frames = sequence["garment_frames"].shape[0]
     assert frames >= 3 and sequence["body_frames"].shape[0] == frames
@@ -154,6 +159,7 @@ def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, shared_da
         (["--motion", "dance.txt"], "--motion must be one of walk, turn, raise, jump or a .bvh file"),
         (["--garment", "missing.obj"], "garment file missing.obj does not exist"),
         (["--frames", "0"], "--frames must be at least 1"),
+        (["--frames", "1", "--video-size", "0", "0"], "--video-size must be two positive pixel counts W H, got 0 0"),
     ],
 )
 def test_bad_input_is_one_clear_line(args, message, tmp_path):
@@ -161,15 +167,23 @@ def test_bad_input_is_one_clear_line(args, message, tmp_path):
     assert result.returncode == 2
     lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
+    assert not any(tmp_path.iterdir())  # refused before any work
+
+
+@pytest.mark.parametrize("command", ["simulate", "capture"])
+def test_out_that_is_a_file_is_refused_before_the_work(command, tmp_path):
+    taken = tmp_path / "results"
+    taken.write_text("not a folder")
+    result = _run(command, "--smoke", "--out", str(taken), "--device", "cpu")
+    assert result.returncode == 2
+    assert "--out is a file, not a folder" in result.stderr and "Traceback" not in result.stderr
+    assert "step 1/" not in result.stderr and "[capture]" not in result.stderr  # nothing simulated
+    assert taken.read_text() == "not a folder"
 
 
 def test_missing_video_encoder_is_named_before_the_simulation(monkeypatch, tmp_path, capsys):
     """Without imageio-ffmpeg the command stops at once, naming the package, instead of simulating first and then
     failing in another imageio plugin."""
-    import importlib.util
-
-    from apps import avatar
-
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else find_spec(name, *a)
