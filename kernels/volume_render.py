@@ -411,19 +411,6 @@ def _safe_component_wp(value: float):
 
 
 @wp.func
-def _ray_box_wp(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
-    t_enter = -wp.inf
-    t_exit = wp.inf
-    for a in range(3):
-        inv = 1.0 / _safe_component_wp(d[a])
-        t0 = (lo[a] - o[a]) * inv
-        t1 = (hi[a] - o[a]) * inv
-        t_enter = wp.max(t_enter, wp.min(t0, t1))
-        t_exit = wp.min(t_exit, wp.max(t0, t1))
-    return t_enter, t_exit
-
-
-@wp.func
 def _cell_exit_wp(p: wp.vec3, d: wp.vec3, cell: wp.vec3i, lo: wp.vec3, cell_size: wp.vec3):
     t_exit = wp.inf
     for a in range(3):

@@ -111,13 +111,6 @@ class SceneMesh:
         colors = (self.colors[used].numpy() * 255.0).round().astype(np.uint8)
         return trimesh.Trimesh(self.vertices[used].numpy(), local.numpy(), vertex_colors=colors, process=False)
 
-    def to_trimesh(self):
-        """The whole scene as one ``trimesh.Trimesh`` with vertex colours (parts stay separate components)."""
-        import trimesh
-
-        colors = (self.colors.numpy() * 255.0).round().astype(np.uint8)
-        return trimesh.Trimesh(self.vertices.numpy(), self.faces.numpy(), vertex_colors=colors, process=False)
-
 
 @dataclass(frozen=True)
 class _Part:

@@ -17,9 +17,9 @@ import torch
 
 from kernels import backend
 from kernels.hashgrid import HashGridConfig
+from kernels.image_metrics import psnr, ssim
 from pienerf import scenes
 from pienerf.data import load_nerf_dataset
-from pienerf.metrics import psnr, ssim
 from pienerf.nerf import NerfDensity, NGPConfig, NGPField, OccupancyGrid, render_rays, spherical_harmonics
 from pienerf.nerf_backend import NerfFit, scene_nerf
 from pienerf.session import Simulation, SimulationConfig, orbit_cameras
