@@ -40,6 +40,8 @@ def build_app(
     With ``render="nerf"`` the NeRF is loaded from ``nerf_checkpoint`` or fitted to the scene (a few-second fit
     with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up.
     """
+    if viewer_name not in VIEWERS:
+        raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
     if viewer_name != "viser" and render != "mesh":

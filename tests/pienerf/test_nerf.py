@@ -388,7 +388,7 @@ def test_scene_nerf_is_cached_as_a_checkpoint(device, teapot_nerf):
     assert other.digest(scene="teapot") != TINY_FIT.digest(scene="teapot") != TINY_FIT.digest(scene="plant")
 
 
-def test_nerf_backend_renders_the_object_and_follows_the_deformation(device, teapot_nerf):
+def test_nerf_render_backend_renders_the_object_and_follows_the_deformation(device, teapot_nerf):
     trained, _ = teapot_nerf
     sim = Simulation(SimulationConfig.create("teapot", floor=False, **SMOKE_BODY))
     renderer = sim.add_nerf_render(trained.field, trained.grid)
