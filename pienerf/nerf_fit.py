@@ -175,12 +175,8 @@ def visual_hull(
     alphas = alphas.float().cpu()
     cameras = cameras.to("cpu")
     for view in range(len(cameras)):
-        c2w = cameras.c2w[view]
-        local = (points - c2w[:3, 3]) @ c2w[:3, :3]  # camera axes: looking down −z
-        depth = -local[:, 2]
+        u, v, depth = cameras.project(view, points)
         front = depth > 1e-6
-        u = cameras.fx[view] * local[:, 0] / depth.clamp_min(1e-6) + cameras.cx[view]
-        v = -cameras.fy[view] * local[:, 1] / depth.clamp_min(1e-6) + cameras.cy[view]
         in_image = front & (u >= 0) & (u < cameras.width) & (v >= 0) & (v < cameras.height)
         col = u.clamp(0, cameras.width - 1).long()
         row = v.clamp(0, cameras.height - 1).long()
