@@ -22,11 +22,8 @@ which is what cuDSS, SciPy and ``torch.sparse_csr_tensor`` take.
 
 PSD filtering stays with the caller (:func:`kernels.cloth.project_psd`, a batched eigen-decomposition). A
 thread-per-element cyclic Jacobi filter inside this kernel was measured and dropped: its rotations form one long
-dependent chain per thread, through memory, so on an H100 it took 3.3 ms for skirt7271's 10,785 bending Hessians
-(12×12) against 1.9 ms for cuSOLVER's batched divide-and-conquer eigensolver (``torch.linalg.eigh``; its batched
-Jacobi solver, one thread block per matrix, takes 0.8 ms: :mod:`kernels.cusolver`), and 2.3 ms for 591 contact
-Hessians, where the latency of one thread is the whole cost. On the CPU, LAPACK is 2.5× faster than the same
-rotations on Warp's one thread.
+dependent chain per thread, through memory, slower than cuSOLVER's batched eigensolvers on CUDA and than LAPACK on
+the CPU (``docs/benchmarks.md``).
 """
 
 from typing import NamedTuple

@@ -89,9 +89,8 @@ def default_framework(device: str | None = None) -> str:
     """The framework of a kernel kept in both languages, for ``device`` (default: the initialised one).
 
     Taichi on the CPU, where it runs a kernel on every core and Warp on one; Warp on CUDA, where a launch costs the
-    host less. Its Python side checks a Taichi launch's argument types anew on each call: on an H100's host a
-    rendered frame's fifteen launches of the round kernels spent ~9 ms there (under ``cProfile``), and the renderer's
-    rounds are bound by the host.
+    host less. Its Python side checks a Taichi launch's argument types anew on each call, and the renderer's rounds
+    are bound by the host (``docs/benchmarks.md``).
     """
     device = device or current_device() or default_device()
     return "warp" if device == "cuda" else "taichi"

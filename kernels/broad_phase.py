@@ -16,11 +16,8 @@ allocate them).
 
 Warp, not Taichi: Warp has a BVH that builds on both devices; on the CPU it runs on one thread.
 
-Measured on skirt7271 walking (3 trees over 3757 vertices, 7271 triangles and 11k edges; 44k body primitives as
-queries; about 0.3M point–triangle and 0.7M edge–edge candidates with the 5 mm margin of the simulator on CUDA): one
-search 7.6 ms on an H100, where the hash grid over primitive centres that it replaced took 24 ms (dozens of launches
-and host reads, and many more candidates to filter); on this project's 2-core CPU, with the 2 mm margin, 48 ms
-against 283 ms.
+It replaced a hash grid over primitive centres, which needed dozens of launches and host reads and filtered many
+more candidates; the BVH search is several times faster on both devices (``docs/benchmarks.md``).
 """
 
 # Warp needs int(0)/bool(False) to declare variables that change inside dynamic loops.

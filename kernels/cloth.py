@@ -12,11 +12,9 @@ Conventions:
   by its nearest positive semi-definite matrix (eigenvalues clamped at zero). The projection runs after the
   kernel as one batched eigen-decomposition: cuSOLVER's batched Jacobi solver on CUDA (:mod:`kernels.cusolver`,
   about 3× faster than ``torch.linalg.eigh`` there, and it does not wait for the device), ``torch.linalg.eigh``
-  (LAPACK) on the CPU. Measured with ``torch.linalg.eigh``, float32, 128² sheet (32 258 faces, 48 133 hinges) on
-  an H100: membrane 0.47 ms, +2.9 ms to project; bending 0.50 ms, +5.1 ms to project. On this project's 2-core
-  CPU (7 938 faces, 11 781 hinges): membrane 1.8 ms, +62 ms; bending 9.6 ms, +114 ms. A per-thread Jacobi
-  eigensolver in Warp was measured and is slower on both devices (:mod:`kernels.assembly` gives the figures); the
-  solver skips projection where the Hessian is known PSD (barrier pairs far from contact have zero Hessians).
+  (LAPACK) on the CPU. The projection costs several times the kernel (``docs/benchmarks.md``); a per-thread
+  Jacobi eigensolver in Warp is slower on both devices (:mod:`kernels.assembly`); the solver skips projection
+  where the Hessian is known PSD (barrier pairs far from contact have zero Hessians).
 * Squared distances are what IPC differentiates: ``d`` below is always a squared distance, ``d̂²`` the squared
   activation distance.
 * Kernels are generic over the scalar type: ``x`` in float32 runs float32 kernels (the default, for GPU
@@ -1737,10 +1735,9 @@ def _declare_float64_overloads() -> None:
 
     Warp builds a module with the overloads its generic kernels have when it is first loaded; an overload that a
     later launch instantiates rebuilds the whole module. Left to the launches, the garment solver rebuilt this
-    module at its first steps and again at its first contact, for the barrier kernels: a stall of about 25 s on an
-    H100 in the middle of a simulation, and on the CPU 16 s and 6 s in the first and the first contact step of
-    ``cloth_step --size smoke`` (kernel cache empty) against 3.3 s and 0.4 s once declared here: the first launch
-    builds them all at once. Other dtypes still work, at the cost of a rebuild."""
+    module at its first steps and again at its first contact, for the barrier kernels, a long stall in the middle
+    of a simulation (``docs/benchmarks.md``); declared here, the first launch builds them all at once. Other dtypes
+    still work, at the cost of a rebuild."""
     for kernel in [value for value in globals().values() if isinstance(value, wp.Kernel) and value.is_generic]:
         types = {}
         for arg in kernel.adj.args:

@@ -42,13 +42,7 @@ one thread per tile owns the tile's list entries and adds without atomics (30 % 
 there); on CUDA one thread per pixel adds atomically. Per-entry gradients are then summed per Gaussian
 with ``index_add_``.
 
-Figures on this project's shared 2-core CPU, under load from other jobs (load average 3-6), with
-``torch.set_num_threads(1)``: 8 views of 512 × 512 px, 5000 Gaussians (σ 2-6 px, radii 7-18 px,
-opacity 0.3-0.99) over a 260 × 340 px garment-sized region of each view, 321k tile entries, 39 entries
-walked per pixel on average: binning 25-45 ms, forward (binning included) 0.81-1.18 s, backward
-0.93-1.46 s. At 2 views of 128 × 128 px with 500 Gaussians, forward + backward takes 43 ms against
-3.2 s for the dense torch reference (74x). With torch's default two intra-op threads on the loaded
-machine the torch binning steps stalled (0.2-1.4 s). Not yet measured on CUDA.
+Timings against the dense torch reference: ``docs/benchmarks.md``.
 """
 
 import math

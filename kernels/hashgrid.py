@@ -14,26 +14,9 @@ Conventions:
   implemented: the autograd function refuses positions that require a gradient.
 * The hash works in ``uint32`` arithmetic (products wrap modulo ``2^32``), as in the paper.
 
-Both frameworks are kept, because the faster one depends on the device. Medians of
-``python -m apps.bench --workload hashgrid_{fwd,bwd}_{taichi,warp} --size paper`` (1M points, 16
-levels of 2 features, ``T = 2^19``); the CPU is a shared 2-core AMD EPYC, so its figures vary by
-about 30 % from run to run:
-
-=============  ============  ============  ==========  ==========
-device         Taichi fwd    Warp fwd      Taichi bwd  Warp bwd
-=============  ============  ============  ==========  ==========
-CPU (2 cores)  395 ms        625 ms        635 ms      567 ms
-H100           1.26-1.44 ms  1.34-1.51 ms  4.6-4.9 ms  4.0-4.2 ms
-=============  ============  ============  ==========  ==========
-
-The torch reference takes 13 s / 8-14 s on that CPU and 18.7 ms / 17.0 ms on the H100. On the CPU
-Taichi runs on every core and Warp on one, so Taichi's lead grows with the core count; on CUDA Warp's
-backward is 15 % faster and the forward passes are within run-to-run spread. :func:`default_framework`
-therefore picks Taichi on the CPU and Warp on CUDA.
-
-The H100 figures are wall time around a synchronised call, host work (argument checks, Warp views,
-launch) included. Nsight Compute puts the Warp forward kernel alone at 1.08 ms, bound by L2 throughput
-(90 %, hit rate 59 %) rather than DRAM (51 %): the random gathers cost, not the bytes.
+Both frameworks are kept, because the faster one depends on the device: on the CPU Taichi runs on every core and
+Warp on one; on CUDA Warp's backward is faster and the forward passes are within run-to-run spread (figures in
+``docs/benchmarks.md``). :func:`default_framework` therefore picks Taichi on the CPU and Warp on CUDA.
 """
 
 import functools
@@ -98,8 +81,8 @@ def _level_major() -> bool:
 
     CPU: level-major, so one level's table (4 MB at ``T = 2^19``) stays in cache while all points
     visit it, and the Taichi backward gives each level to one task (no atomics). CUDA: point-major,
-    so the 32 threads of a warp write 2 whole output rows (coalesced); level-major ran 1.4x slower on
-    an H100 (1.72 ms against 1.20 ms forward, 1M points).
+    so the 32 threads of a warp write 2 whole output rows (coalesced); level-major ran slower there
+    (``docs/benchmarks.md``).
     """
     return backend.current_device() == "cpu"
 

@@ -15,8 +15,7 @@ Conventions:
 
 Warp is the only framework here with a triangle BVH (``wp.Mesh``, SAH build on the CPU, LBVH on CUDA) that
 refits in place when a mesh deforms; Taichi has none, so both devices run Warp. Warp runs CPU kernels on one
-thread: on this project's 2-core CPU one 200×200 view of the 9.5k-face plant scene (40 000 primary rays, a shadow
-ray per lit hit) shades in 6.3 ms, and a 64-view, 200², 2×2-supersampled scene renders in about 10 s.
+thread, which is fast enough for a view per frame (``docs/benchmarks.md``).
 """
 
 import math

@@ -6,8 +6,8 @@ then visits only the cells that overlap its search ball. Build once, query many 
 asks millions of ray samples for their neighbours among a few hundred particles every frame.
 
 Warp rather than Taichi: ``wp.HashGrid`` is a tested, sorted-bucket grid that builds on both devices,
-and on an H100 this project measured Warp's hash-grid kernel 1.6x faster than the same kernel in
-Taichi. On the CPU Warp runs a kernel on one thread.
+and on CUDA Warp's hash-grid kernel is the faster of the two (``docs/benchmarks.md``). On the CPU Warp runs a
+kernel on one thread.
 
 Distances are Euclidean, in the units of the points (metres in this project), compared in float32.
 """

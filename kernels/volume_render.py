@@ -47,11 +47,7 @@ runs them on every core; Warp's CPU backend on one). The two kernels a renderer 
 loops, and Warp is their default on CUDA: a frame launches them a dozen times, and a Taichi launch costs the host
 several times what a Warp launch does (:func:`kernels.backend.default_framework`). On the CPU the Warp march is
 bit for bit Taichi's; on CUDA the two compilers may fuse multiply-adds differently, so a sample can move in the
-last bit. Figures from
-``python -m apps.bench --workload volume_render --size paper`` (16k rays, 2.1M
-packed samples, forward + backward through :class:`VolumeRenderFunction`) on this project's shared
-2-core CPU, under load from other jobs: 132 ms (15.9 Msamples/s) against 1206 ms for the torch
-reference (segmented ``cumsum`` + ``index_add_`` + autograd), 9.1x. Not yet measured on CUDA.
+last bit. Timings against the torch reference: ``docs/benchmarks.md``.
 """
 
 # Warp needs int(0)/float(0.0) to declare variables that change inside dynamic loops.
@@ -408,19 +404,6 @@ def _safe_component_wp(value: float):
     if wp.abs(value) < _TINY_DIRECTION_WP:
         result = wp.where(value >= 0.0, _TINY_DIRECTION_WP, -_TINY_DIRECTION_WP)
     return result
-
-
-@wp.func
-def _ray_box_wp(o: wp.vec3, d: wp.vec3, lo: wp.vec3, hi: wp.vec3):
-    t_enter = -wp.inf
-    t_exit = wp.inf
-    for a in range(3):
-        inv = 1.0 / _safe_component_wp(d[a])
-        t0 = (lo[a] - o[a]) * inv
-        t1 = (hi[a] - o[a]) * inv
-        t_enter = wp.max(t_enter, wp.min(t0, t1))
-        t_exit = wp.min(t_exit, wp.max(t0, t1))
-    return t_enter, t_exit
 
 
 @wp.func
@@ -880,8 +863,8 @@ def gather_ray_rows(
         slots: int64 ``[S]`` slots of the round's ``[A · k]``.
         samples_per_ray: ``k``.
         kernel: copy the rows' words with a Warp kernel, or ``False``: torch indexing. ``None``: the kernel on
-            CUDA (for rows of whole words), where torch's gather of 2M rows of 32 bytes took 1.27 ms on an H100
-            (5 ms of a lego frame) and the kernel 0.13 ms; torch indexing on the CPU.
+            CUDA (for rows of whole words), where it is several times faster than torch's gather
+            (``docs/benchmarks.md``); torch indexing on the CPU.
 
     Returns:
         ``[S, C]`` of ``table``'s dtype.

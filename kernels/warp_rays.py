@@ -42,16 +42,14 @@ Empty space. A sample whose nearest deformed IP is farther than that IP's cutoff
 
 Framework: Taichi, one sample per thread with a data-dependent Newton loop: the project's rule for per-sample
 rendering kernels that must run interactively on a CPU (Taichi uses every core, Warp's CPU backend one).
-``python -m apps.bench --workload warp_rays --size paper`` (1M samples, 3 IPs each, random F and ∇F, 3.7
-iterations on average) on this project's shared 2-core CPU, under load from other jobs: 168 ms (6.2 Msamples/s)
-against 27.1 s for the torch reference (:mod:`kernels.reference.warp_rays`, batched ``linalg.solve``), 161x.
+Timings against the torch reference (:mod:`kernels.reference.warp_rays`): ``docs/benchmarks.md``.
 
 A renderer's round (:func:`warp_round`) takes the marched samples in their per-ray slots, finds each one's nearest
 IPs, warps it and tests its rest cell in one call. It is kept in Warp too (``framework=``, the default on CUDA, where
 a Taichi launch costs the host several times a Warp one; :func:`kernels.backend.default_framework`): a search kernel
 and a warp kernel over all the round's slots, so nothing is compacted first and the round needs one host sync. On
-the lego at 800² (H100) the two take 4.6 and 2.3 ms of a frame; one kernel doing both took 8.0 ms (the search then
-runs at the Newton solve's lower occupancy).
+one kernel doing both is slower, as the search then runs at the Newton solve's lower occupancy
+(``docs/benchmarks.md``).
 """
 
 # Warp needs int(0)/float(0.0) to declare variables that change inside dynamic loops.
@@ -599,9 +597,8 @@ def splat_occupancy(
     Each cell's corners x map to x + u_k + (F_k − I) d + ½ ∇F_k : d d, d = x − x_k, about the cell's nearest rest
     IP k; every deformed cell the mapped corners' bounding box overlaps (shrunk by 1e-4 of a cell, so a cell mapped
     onto itself marks only itself) is marked, at most 3 per axis per cell. One Warp thread per rest cell, in float64
-    (so with zero displacement every corner maps to itself bit for bit). A renderer's frame calls it once; written as
-    ~40 torch operations (a difference array over the boxes) it took 2.2 ms of host time per lego frame on an H100
-    under ``cProfile``, a noticeable share of a frame bound by its host.
+    (so with zero displacement every corner maps to itself bit for bit). A renderer's frame calls it once; as a kernel
+    rather than ~40 torch operations it spares a frame bound by its host (``docs/benchmarks.md``).
 
     Args:
         cells_lo: float64 ``[C, 3]`` lower corners of the occupied rest cells, metres.

@@ -141,6 +141,55 @@ class Cameras:
         v = rows.reshape(-1).repeat(views.numel())
         return cameras.pixel_rays(view, u, v)
 
+    def grid_rays(self, view: int, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rays through the centres of a ``width × height`` grid of blocks covering view ``view``'s image.
+
+        The grid need not divide the image: block ``(col, row)`` is centred on pixel coordinates
+        ``((col + ½) W / width, (row + ½) H / height)``, so a preview of any size sees the camera's whole view.
+
+        Returns:
+            ``origins [height·width, 3]`` (metres, expanded) and unit ``directions [height·width, 3]``, row-major,
+            on the cameras' device.
+        """
+        if not (width >= 1 and height >= 1):
+            raise ValueError(f"the ray grid needs a positive number of pixels, got {width} x {height}")
+        rows, cols = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
+        u = cols.reshape(-1) * (self.width / width)
+        v = rows.reshape(-1) * (self.height / height)
+        origins, directions = self.pixel_rays(view, u, v)
+        return origins.expand_as(directions), directions
+
+    def project(self, view: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Pixel coordinates of world points seen by view ``view``: the inverse of :meth:`pixel_rays`.
+
+        Args:
+            view: the view index.
+            points: ``[P, 3]`` world points, metres.
+
+        Returns:
+            ``u, v [P]`` pixel coordinates from the top-left corner and ``depth [P]`` along the optical axis
+            (metres, positive in front of the camera); ``u, v`` are meaningful only where ``depth > 0``.
+        """
+        c2w = self.c2w[view].to(points)
+        local = (points - c2w[:3, 3]) @ c2w[:3, :3]  # camera axes, looking down −z
+        depth = -local[:, 2]
+        z = depth.clamp_min(1e-6)
+        u = self.fx[view].to(points) * local[:, 0] / z + self.cx[view].to(points)
+        v = -self.fy[view].to(points) * local[:, 1] / z + self.cy[view].to(points)
+        return u, v, depth
+
+    def axial_depth(self, view: int, ray_depth: torch.Tensor) -> torch.Tensor:
+        """Depth along the optical axis of a ``[h, w]`` image of distances along the rays of :meth:`grid_rays`.
+
+        A ray's length times the cosine of its angle to the optical axis; what a z-buffer (e.g. a browser's
+        compositing) expects. Non-finite distances stay non-finite.
+        """
+        height, width = ray_depth.shape
+        _, directions = self.grid_rays(view, width, height)
+        forward = -self.c2w[view, :3, 2]
+        cosine = (directions @ forward).reshape(height, width).to(ray_depth)
+        return ray_depth * cosine
+
 
 @dataclass
 class NerfDataset:

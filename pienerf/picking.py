@@ -30,6 +30,7 @@ from pienerf.model import PointHandle, QGMLSModel
 from pienerf.solver import ControlQGMLS, PointForces, PointTargets
 
 __all__ = [
+    "DragConfig",
     "DragController",
     "Interaction",
     "PickHit",
@@ -186,6 +187,34 @@ def spring_damper_target(target: torch.Tensor, previous: torch.Tensor, stiffness
     rate = damping / dt
     combined = stiffness + rate
     return (stiffness * target + rate * previous) / combined, combined
+
+
+@dataclass(frozen=True)
+class DragConfig:
+    """The drag spring of an interactive session, scaled to the body's stiffness unless given.
+
+    Attributes:
+        stiffness: k of the drag spring (N/m); ``None`` → Young's modulus × 0.05 m.
+        damping: c of the drag damper (N·s/m); ``None`` → k × 0.1 s.
+        max_acceleration: a_max of the drag (m/s²), the largest acceleration the spring may give the picked point.
+    """
+
+    stiffness: float | None = None
+    damping: float | None = None
+    max_acceleration: float = 30.0
+
+    def __post_init__(self):
+        if self.stiffness is not None and not (0 < self.stiffness < math.inf):
+            raise ValueError(f"drag stiffness must be a finite number > 0 N/m (or None), got {self.stiffness!r}")
+        if self.damping is not None and not (0 <= self.damping < math.inf):
+            raise ValueError(f"drag damping must be a finite number >= 0 N·s/m (or None), got {self.damping!r}")
+        if not self.max_acceleration > 0:
+            raise ValueError(f"drag max_acceleration must be > 0 m/s², got {self.max_acceleration!r}")
+
+    def spring(self, young_modulus: float) -> tuple[float, float]:
+        """``(k N/m, c N·s/m)`` for a body of Young's modulus ``young_modulus`` (Pa)."""
+        stiffness = self.stiffness or 0.05 * young_modulus
+        return stiffness, self.damping if self.damping is not None else 0.1 * stiffness
 
 
 class DragController:

@@ -26,7 +26,7 @@ full march's (bit for bit at q = 0 against :func:`pienerf.nerf.render_rays` with
 kernels, CUDA's default, to the last bit of the compositing's ``exp``; to float rounding of the field's batched
 queries otherwise). How much is saved depends on the NeRF's opacity: on the analytic teapot (opaque within
 2 mm) with its rod bent, a 40² view marched 10.5k samples (queried 3.8k) where a full march marches 38.3k; the
-teapot's fitted NeRF (:func:`pienerf.nerf_backend.scene_nerf`, whose inside stays translucent: transmittance
+teapot's fitted NeRF (:func:`pienerf.nerf_fit.scene_nerf`, whose inside stays translucent: transmittance
 reaches 0.5 about 12 samples past the surface but 0.01 only after ~60) marched 707k of 746k samples at 200² and
 queried 592k of 624k.
 
@@ -301,16 +301,14 @@ class DeformedRenderer:
         chunk: rays per batch of ``mode="rest"``, which renders by :func:`pienerf.nerf.render_rays`.
         first_round_steps: samples per ray of the first round. ``None``: 16 on CUDA, 1 on the CPU.
         steps_per_round: most samples a ray marches in one round. ``None``: 128 on CUDA, 32 on the CPU. On CUDA
-            a round costs ~1 ms of launches and syncs whatever its size, so few large rounds win: on the lego at
-            800² (H100, Taichi round kernels, float32 MLPs), first / most / budget 1 / 32 / 2²¹ took 12 rounds and
-            58 ms, 8 / 128 / 2²³ 5 rounds and 43 ms, though they marched 10.6M samples against 9.7M. Growing ``k``
-            to fill the budget (3–4 rounds) marched up to 12.7M samples and was slower.
+            a round costs ~1 ms of launches and syncs whatever its size, so few large rounds win
+            (``docs/benchmarks.md``).
         round_samples: most samples marched in one round over all rays (bounds memory; rays are taken this many
             at a time). ``None``: 2²³ on CUDA (all rays of an 800² frame at once), 2¹⁸ on the CPU.
         half_precision: evaluate the field's MLPs in float16 (``torch.autocast``), as instant-NGP's fully fused MLPs
             do; the hash encoding, σ's exponential and the compositing stay float32. ``None``: for an
-            :class:`pienerf.nerf.NGPField` on CUDA. On the lego at 800² it changed pixels by at most 6e-4 (PSNR
-            90 dB against the float32 image) and cut a frame from 44.8 to 39.3 ms on an H100.
+            :class:`pienerf.nerf.NGPField` on CUDA. Its error is far below a pixel's quantisation and it saves time
+            (``docs/benchmarks.md``).
         framework: ``"taichi"`` or ``"warp"``, the kernels of a round (march, warp, composite); ``None``:
             :func:`kernels.backend.default_framework` (Warp on CUDA, where a frame issues dozens of launches and a
             Warp launch costs the host less than a Taichi one).
@@ -432,8 +430,7 @@ class DeformedRenderer:
 
         On the CPU torch runs on one thread meanwhile (:func:`kernels.backend.one_torch_thread_on_cpu`; the Taichi
         kernels still use every core): the rounds' many small tensor operations cost more in waking and waiting
-        for a second thread than they gain, most of all on shared cores. On this project's 2-core CPU under load
-        from other jobs, a 64² frame of the teapot's NeRF took 0.2 s against 1–2 s on two threads.
+        for a second thread than they gain, most of all on shared cores (``docs/benchmarks.md``).
 
         Args:
             q: ``[nT, 3]`` generalized coordinates (Eq. 9); ignored with ``mode="rest"``.
@@ -566,8 +563,8 @@ class DeformedRenderer:
 
         The other samples have σ = 0 (no IP reaches them or their rest cell is empty): compositing them changes
         nothing (α = 0 exactly, T unchanged), so only the kept ones are queried and composited, in ray order.
-        (Querying every marched sample with σ zeroed instead saves the count but not the time: on the lego at 800² it
-        queried 10.9M samples for 8.5M, and took 38.7 ms per frame against 35.7 ms on an H100.)
+        (Querying every marched sample with σ zeroed instead saves the count but not the time:
+        ``docs/benchmarks.md``.)
         """
         index = _compact(keep, kept)  # the kept samples' slots of the round's [A · k], in ray order
         offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
@@ -647,9 +644,5 @@ class DeformedRenderer:
         width, height = (cameras.width, cameras.height) if resolution is None else (resolution, resolution)
         if width < 1 or height < 1:
             raise ValueError(f"resolution must be a positive number of pixels, got {resolution}")
-        rows, cols = torch.meshgrid(torch.arange(height) + 0.5, torch.arange(width) + 0.5, indexing="ij")
-        u = cols.reshape(-1) * (cameras.width / width)
-        v = rows.reshape(-1) * (cameras.height / height)
-        origins, directions = cameras.pixel_rays(view, u, v)
-        origins = origins.expand_as(directions)
+        origins, directions = cameras.grid_rays(view, width, height)
         return origins.float().to(device).contiguous(), directions.float().to(device).contiguous(), (height, width)

@@ -28,7 +28,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import shutil
 import tempfile
 from collections.abc import Callable, Sequence
@@ -40,8 +39,10 @@ import torch
 
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
+from pienerf.cameras import look_at_cameras
 from pienerf.data import Cameras
 from pienerf.density import Box, Capsule, SDFDensity, Sphere, Union
+from pienerf.paths import cache_root
 
 __all__ = [
     "GENERATOR_VERSION",
@@ -110,13 +111,6 @@ class SceneMesh:
         used, local = torch.unique(faces, return_inverse=True)
         colors = (self.colors[used].numpy() * 255.0).round().astype(np.uint8)
         return trimesh.Trimesh(self.vertices[used].numpy(), local.numpy(), vertex_colors=colors, process=False)
-
-    def to_trimesh(self):
-        """The whole scene as one ``trimesh.Trimesh`` with vertex colours (parts stay separate components)."""
-        import trimesh
-
-        colors = (self.colors.numpy() * 255.0).round().astype(np.uint8)
-        return trimesh.Trimesh(self.vertices.numpy(), self.faces.numpy(), vertex_colors=colors, process=False)
 
 
 @dataclass(frozen=True)
@@ -623,7 +617,7 @@ def scene_cameras(name: str, views: int = 64, resolution: int = 200, seed: int =
     turn = float(np.random.default_rng(seed).uniform(0.0, 2.0 * math.pi))
     golden = math.pi * (3.0 - math.sqrt(5.0))
     low, high = math.sin(math.radians(3.0)), math.sin(math.radians(72.0))
-    c2w = torch.zeros(views, 4, 4, dtype=torch.float64)
+    positions = []
     for i in range(views):
         elevation = math.asin(low + (high - low) * (i + 0.5) / views)
         azimuth = turn + golden * i
@@ -631,18 +625,10 @@ def scene_cameras(name: str, views: int = 64, resolution: int = 200, seed: int =
             [math.cos(elevation) * math.cos(azimuth), math.sin(elevation), math.cos(elevation) * math.sin(azimuth)],
             dtype=torch.float64,
         )
-        position = centre + distance * offset
-        forward = -offset
-        right = torch.nn.functional.normalize(
-            torch.linalg.cross(forward, torch.tensor([0.0, 1.0, 0.0]).double()), dim=0
-        )
-        up = torch.linalg.cross(right, forward)
-        c2w[i, :3, 0], c2w[i, :3, 1], c2w[i, :3, 2], c2w[i, :3, 3] = right, up, -forward, position
-        c2w[i, 3, 3] = 1.0
-    focal = 0.5 * resolution / math.tan(0.5 * CAMERA_ANGLE_X)
-    full = torch.full((views,), focal, dtype=torch.float32)
-    middle = torch.full((views,), 0.5 * resolution, dtype=torch.float32)
-    return Cameras(c2w.float(), full, full.clone(), middle, middle.clone(), resolution, resolution)
+        positions.append(centre + distance * offset)
+    return look_at_cameras(
+        torch.stack(positions), centre.expand(views, 3), resolution, resolution, math.degrees(CAMERA_ANGLE_X)
+    )
 
 
 def render_scene(
@@ -697,12 +683,7 @@ def render_scene(
         "test_every": test_every,
     }
     digest = hashlib.sha1(json.dumps(settings, sort_keys=True).encode()).hexdigest()[:10]
-    root = (
-        Path(cache_dir)
-        if cache_dir is not None
-        else Path(os.environ.get("PIE_CACHE_DIR", Path.home() / ".cache" / "pie-physavatar"))
-    )
-    folder = root.expanduser() / "scenes" / f"{name}-{resolution}-{views}-{digest}"
+    folder = cache_root(cache_dir) / "scenes" / f"{name}-{resolution}-{views}-{digest}"
     if (folder / "transforms_train.json").is_file():
         return folder
 

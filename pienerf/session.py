@@ -2,21 +2,13 @@
 controls, material changes, re-sampling, cuts and previews (PIE-NeRF §5). The viewer (``apps.demo``) and the
 scripted renders (``apps.render``) both drive a :class:`Simulation`.
 
-Previews come from render backends behind one small interface, :class:`RenderBackend`
-(``render(q, cameras, view) -> Frame``):
-
-* ``"mesh"``: the scene's mesh carried by the Q-GMLS displacement field, x(X) = X + Σ_s N_s(X) q_s (Eq. 9),
-  whose shape functions at the rest vertices are precomputed once; each frame moves the vertices, refits the
-  BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`).
-* ``"particles"``: the deformed particles splatted as discs with the colour of the nearest mesh vertex.
-
-* ``"nerf"``: a NeRF of the scene rendered by quadratic (or linear) ray warping, Eq. 19–21
-  (:class:`pienerf.nerf_backend.NerfRenderBackend`), added by :meth:`Simulation.add_nerf_render` from a trained
-  field, e.g. :func:`pienerf.nerf_backend.scene_nerf` of an embedded scene.
+Previews come from the render backends of :mod:`pienerf.preview`: ``"mesh"`` and ``"particles"`` always, and
+``"nerf"``, a NeRF of the scene warped by the body (Eq. 19–21), added by :meth:`Simulation.add_nerf_render` from a
+trained field, e.g. :func:`pienerf.nerf_fit.scene_nerf` of an embedded scene.
 
 A scene may also be a trained NeRF checkpoint (``scene="path/to/ngp.pt"``, :func:`pienerf.train.save_checkpoint`):
-the body is then sampled from the NeRF's solid (:class:`pienerf.nerf_backend.NerfSceneDensity`), picking and the
-mesh preview use a blocky surface extracted from it (:func:`pienerf.nerf_backend.nerf_proxy_mesh`), and the
+the body is then sampled from the NeRF's solid (:class:`pienerf.nerf_solid.NerfSceneDensity`), picking and the
+mesh preview use a blocky surface extracted from it (:func:`pienerf.nerf_solid.nerf_proxy_mesh`), and the
 ``"nerf"`` mode is there from the start. Backends that hold the discretised body (a ``rebind(model)`` method) follow
 it through re-sampling and cuts.
 """
@@ -26,35 +18,34 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import NamedTuple, Protocol
 
 import torch
 
 from kernels import backend
-from kernels.raycast import MeshBVH, shade
 from pienerf.cut import CutPlane
 from pienerf.data import Cameras
+from pienerf.density import MeshDensity
 from pienerf.materials import MATERIAL_MODELS, Material
 from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.picking import DragController, Interaction, PickHit, PickSurface
+from pienerf.nerf_solid import NerfSceneDensity, nerf_proxy_mesh
+from pienerf.picking import DragConfig, DragController, Interaction, PickHit
+from pienerf.preview import Frame, MeshRenderBackend, NerfRenderBackend, ParticleRenderBackend, RenderBackend
+from pienerf.render import GroundPlane
 from pienerf.reports import TimeBreakdown
 from pienerf.sampling import poisson_disk_sample
-from pienerf.scenes import LIGHT_DIRECTION, SCENES, scene_density, scene_mesh
+from pienerf.scenes import SCENES, scene_density, scene_mesh
 from pienerf.solver import PlaneCollider, SolverConfig, SolverQGMLS, SphereCollider, StateQGMLS, StepReport
+from pienerf.train import load_checkpoint
 
 __all__ = [
+    "INTERACTIVE_DISCRETIZATION",
+    "INTERACTIVE_SOLVER",
     "SCENE_SETUPS",
-    "Frame",
-    "MeshRenderBackend",
-    "ParticleRenderBackend",
-    "RenderBackend",
     "SceneSetup",
     "Simulation",
     "SimulationConfig",
-    "look_at_cameras",
-    "orbit_cameras",
     "project_state",
 ]
 
@@ -91,55 +82,52 @@ SCENE_SETUPS: dict[str, SceneSetup] = {
 _GENERIC_SETUP = SceneSetup(Material("neo_hookean", 5.0e4, 0.3, 1000.0), 16, 0.0)
 
 
+INTERACTIVE_SOLVER = SolverConfig(rayleigh_alpha=2.0, newton_iterations=2)
+"""A session's solver defaults: some damping and two Newton iterations a step, so a frame stays interactive."""
+
+INTERACTIVE_DISCRETIZATION = DiscretizationConfig(kernel_lloyd_iterations=2, ip_lloyd_iterations=2)
+"""A session's discretisation defaults (the kernel count comes from the scene): two Lloyd steps, so a re-sampling
+stays quick."""
+
+
 @dataclass(frozen=True)
 class SimulationConfig:
-    """A session's settings; ``None`` fields take the scene's :data:`SCENE_SETUPS` default.
+    """A session's settings, composed of the solver's, the discretisation's and the drag's.
+
+    :meth:`create` builds one from flat keyword settings (``kernel_count=6, rayleigh_alpha=1.0, ...``).
 
     Attributes:
-        scene: an embedded scene name (:data:`pienerf.scenes.SCENES`) or the path of a watertight mesh (m).
-        material: the body's material.
-        kernel_count: Q-GMLS kernels n.
-        particle_radius: r̄ of the Poisson-disk sampling (m); for a mesh path, 1/40 of its largest extent.
-        order: shape-function order, ``"quadratic"`` (Q-GMLS) or ``"linear"``/``"affine"`` for comparison.
-        lloyd_iterations: Lloyd steps of the kernels and the integrator points.
+        scene: an embedded scene name (:data:`pienerf.scenes.SCENES`), the path of a watertight mesh (m) or a
+            trained NeRF checkpoint (``.pt``).
+        material: the body's material; ``None`` → the scene's :data:`SCENE_SETUPS` default.
+        particle_radius: r̄ of the Poisson-disk sampling (m); ``None`` → the scene's default, for a mesh path 1/40 of
+            its largest extent.
         dt: time step h (s).
-        gravity: acceleration of gravity (m/s²).
-        rayleigh_alpha: mass-proportional damping α (1/s).
-        rayleigh_beta: stiffness-proportional damping β (s).
-        newton_iterations: most Newton iterations per step.
+        solver: gravity, damping and Newton settings (:class:`pienerf.solver.SolverConfig`).
+        discretization: kernels, order, Lloyd steps and cuts (:class:`pienerf.model.DiscretizationConfig`);
+            ``None`` → :data:`INTERACTIVE_DISCRETIZATION` with the scene's kernel count.
+        drag: the drag spring (:class:`pienerf.picking.DragConfig`).
         floor: a ground plane collider at y = 0 (and the ground of the mesh preview).
         colliders: further colliders.
         default_pins: pin the scene's default pin boxes at reset.
-        drag_stiffness: k of the drag spring (N/m); ``None`` → Young's modulus × 0.05 m.
-        drag_damping: c of the drag damper (N·s/m); ``None`` → k × 0.1 s.
-        max_acceleration: a_max of the drag (m/s²).
         pin_stiffness: stiffness of each pin spring (N/m); ``None`` → Young's modulus × r̄ × 20.
         seed: seed of the particle sampling.
-        cuts: planes the body is cut along (rest space).
         nerf_solid_resolution: for a NeRF checkpoint scene, cells along the longest edge of the grid on which its
-            solid and proxy mesh are found (:class:`pienerf.nerf_backend.NerfSceneDensity`).
+            solid and proxy mesh are found (:class:`pienerf.nerf_solid.NerfSceneDensity`).
     """
 
     scene: str = "plant"
     material: Material | None = None
-    kernel_count: int | None = None
     particle_radius: float | None = None
-    order: str = "quadratic"
-    lloyd_iterations: int = 2
     dt: float = 1.0 / 30.0
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    rayleigh_alpha: float = 2.0
-    rayleigh_beta: float = 0.0
-    newton_iterations: int = 2
+    solver: SolverConfig = INTERACTIVE_SOLVER
+    discretization: DiscretizationConfig | None = None
+    drag: DragConfig = DragConfig()
     floor: bool = True
     colliders: tuple[PlaneCollider | SphereCollider, ...] = ()
     default_pins: bool = True
-    drag_stiffness: float | None = None
-    drag_damping: float | None = None
-    max_acceleration: float = 30.0
     pin_stiffness: float | None = None
     seed: int = 0
-    cuts: tuple[CutPlane, ...] = field(default_factory=tuple)
     nerf_solid_resolution: int = 96
 
     def __post_init__(self):
@@ -153,189 +141,61 @@ class SimulationConfig:
                 "trained NeRF checkpoint (.pt)"
             )
 
+    @property
+    def setup(self) -> SceneSetup:
+        """The scene's defaults (a generic body for a mesh or checkpoint path)."""
+        return SCENE_SETUPS.get(self.scene, _GENERIC_SETUP)
 
-class Frame(NamedTuple):
-    """One rendered view.
+    def body_discretization(self) -> DiscretizationConfig:
+        """:attr:`discretization`, or the interactive defaults with the scene's kernel count."""
+        if self.discretization is not None:
+            return self.discretization
+        return replace(INTERACTIVE_DISCRETIZATION, kernel_count=self.setup.kernel_count)
 
-    Attributes:
-        rgba: ``[H, W, 4]`` float32 in [0, 1], straight alpha.
-        depth: ``[H, W]`` float32 distance along each pixel ray (m), ``inf`` where nothing is hit.
-        shadow: ``[H, W]`` float32 in [0, 1], share of the direct light blocked at each visible point, or ``None``.
-    """
+    @classmethod
+    def create(cls, scene: str = "plant", **settings) -> SimulationConfig:
+        """A config from flat keyword settings, each sent to the part that has the field.
 
-    rgba: torch.Tensor
-    depth: torch.Tensor
-    shadow: torch.Tensor | None = None
+        Keys are this class's fields, :class:`~pienerf.solver.SolverConfig`'s, :class:`~pienerf.model.
+        DiscretizationConfig`'s, ``drag_`` + :class:`~pienerf.picking.DragConfig`'s (``drag_stiffness``) and
+        ``lloyd_iterations`` (both Lloyd counts). A setting of ``None`` keeps the default; the kernel count defaults to
+        the scene's.
 
-
-class RenderBackend(Protocol):
-    """Renders the body at generalized coordinates ``q [nT, 3]`` seen by one view of ``cameras``."""
-
-    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame: ...
-
-
-def orbit_cameras(
-    centre, distance: float, azimuths_deg, elevation_deg: float, width: int, height: int, fov_deg: float = 40.0
-) -> Cameras:
-    """Pinhole cameras on a circle about ``centre [3]`` (m), y up, all looking at the centre.
-
-    Args:
-        centre: the point looked at (m).
-        distance: distance from the centre (m).
-        azimuths_deg: azimuth of each camera about +y, degrees (0 looks from +z).
-        elevation_deg: elevation above the horizontal plane, degrees.
-        width, height: image size (pixels).
-        fov_deg: vertical field of view, degrees.
-    """
-    centre = torch.as_tensor(centre, dtype=torch.float64)
-    positions = []
-    for azimuth in azimuths_deg:
-        a, e = math.radians(float(azimuth)), math.radians(float(elevation_deg))
-        offset = torch.tensor([math.cos(e) * math.sin(a), math.sin(e), math.cos(e) * math.cos(a)], dtype=torch.float64)
-        positions.append(centre + distance * offset)
-    return look_at_cameras(torch.stack(positions), centre.expand(len(positions), 3), width, height, fov_deg)
-
-
-def look_at_cameras(positions, targets, width: int, height: int, fov_deg: float = 40.0) -> Cameras:
-    """Pinhole cameras at ``positions [N, 3]`` looking at ``targets [N, 3]`` (m), y up, OpenGL axes."""
-    positions = torch.as_tensor(positions, dtype=torch.float64).reshape(-1, 3)
-    targets = torch.as_tensor(targets, dtype=torch.float64).reshape(-1, 3)
-    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
-        raise ValueError(f"image size must be positive integers, got {width} x {height}")
-    if not 0 < fov_deg < 180:
-        raise ValueError(f"fov_deg must lie in (0, 180) degrees, got {fov_deg}")
-    c2w = torch.zeros(len(positions), 4, 4, dtype=torch.float64)
-    up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    for i, (position, target) in enumerate(zip(positions, targets, strict=True)):
-        forward = torch.nn.functional.normalize(target - position, dim=0)
-        right = torch.linalg.cross(forward, up)
-        if float(right.norm()) < 1e-8:  # looking straight up or down
-            right = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-        right = torch.nn.functional.normalize(right, dim=0)
-        c2w[i, :3, 0], c2w[i, :3, 1], c2w[i, :3, 2] = right, torch.linalg.cross(right, forward), -forward
-        c2w[i, :3, 3], c2w[i, 3, 3] = position, 1.0
-    focal = 0.5 * height / math.tan(0.5 * math.radians(fov_deg))
-    n = len(positions)
-    f = torch.full((n,), focal, dtype=torch.float32)
-    return Cameras(
-        c2w.float(), f, f.clone(), torch.full((n,), 0.5 * width), torch.full((n,), 0.5 * height), width, height
-    )
+        Raises:
+            ValueError: a key no part has.
+        """
+        own, solver, discretization, drag = {}, {}, {}, {}
+        for key, value in settings.items():
+            if value is None:
+                continue
+            if key == "lloyd_iterations":
+                discretization.update(kernel_lloyd_iterations=value, ip_lloyd_iterations=value)
+            elif key in _field_names(cls):
+                own[key] = value
+            elif key in _field_names(SolverConfig):
+                solver[key] = value
+            elif key in _field_names(DiscretizationConfig):
+                discretization[key] = value
+            elif key.startswith("drag_") and key[5:] in _field_names(DragConfig):
+                drag[key[5:]] = value
+            else:
+                raise ValueError(
+                    f"unknown simulation setting {key!r}; valid: lloyd_iterations, the fields of SimulationConfig, "
+                    "SolverConfig and DiscretizationConfig, and drag_stiffness, drag_damping, drag_max_acceleration"
+                )
+        config = cls(scene=scene, **own)
+        return replace(
+            config,
+            solver=replace(config.solver, **solver),
+            drag=replace(config.drag, **drag),
+            discretization=replace(config.body_discretization(), **discretization)
+            if discretization
+            else config.discretization,
+        )
 
 
-class MeshRenderBackend:
-    """The scene mesh deformed by the Q-GMLS field, ray traced with shadows onto a ground plane.
-
-    Args:
-        model: the discretised body.
-        vertices: ``[V, 3]`` rest vertices (m).
-        faces: ``[F, 3]`` vertex indices.
-        colors: ``[V, 3]`` albedo in [0, 1].
-        ground_height: y of the ground plane (m), or ``None`` for none.
-        ground_color: albedo of the ground.
-    """
-
-    def __init__(
-        self,
-        model: QGMLSModel,
-        vertices: torch.Tensor,
-        faces: torch.Tensor,
-        colors: torch.Tensor,
-        ground_height: float | None = 0.0,
-        ground_color=(0.82, 0.82, 0.8),
-    ):
-        device = backend.torch_device()
-        self.handle = model.handle(vertices)
-        self.body_vertices = vertices.shape[0]
-        vertices, faces, colors = vertices.float(), faces.long(), colors.float()
-        if ground_height is not None:
-            lo, hi = vertices.amin(0), vertices.amax(0)
-            centre, half = 0.5 * (lo + hi), 4.0 * float((hi - lo).max())
-            corners = torch.tensor([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=torch.float32) * half
-            ground = torch.stack(
-                [corners[:, 0] + centre[0], torch.full((4,), float(ground_height)), corners[:, 1] + centre[2]], dim=1
-            )
-            base = vertices.shape[0]
-            faces = torch.cat([faces, torch.tensor([[0, 2, 1], [0, 3, 2]]) + base])
-            vertices = torch.cat([vertices, ground])
-            colors = torch.cat([colors, torch.tensor(ground_color, dtype=torch.float32).expand(4, 3)])
-        self.rest_vertices = vertices.to(device)
-        self.colors = colors.to(device).contiguous()
-        self.bvh = MeshBVH(self.rest_vertices, faces.to(device=device, dtype=torch.int32))
-        self._vertices = self.rest_vertices.clone()
-
-    def deform(self, q: torch.Tensor) -> torch.Tensor:
-        """Move the body's vertices to x(X) at ``q`` (Eq. 9) and refit the BVH; returns the ``[V, 3]`` vertices."""
-        self._vertices[: self.body_vertices] = self.handle.positions(q).to(self._vertices)
-        self.bvh.refit(self._vertices)
-        return self._vertices[: self.body_vertices]
-
-    def surface(self) -> PickSurface:
-        """The deformed mesh to pick on (kept current by :meth:`deform`)."""
-        return PickSurface(self.bvh, self.rest_vertices, self.body_vertices)
-
-    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
-        self.deform(q)
-        device = backend.torch_device()
-        origins, directions = cameras.rays(view)
-        origins, directions = origins.to(device), directions.to(device)
-        lit = shade(self.bvh, origins, directions, self.colors, light_direction=LIGHT_DIRECTION)
-        shape = (cameras.height, cameras.width)
-        blocked = None
-        if shadow:
-            unlit = shade(self.bvh, origins, directions, self.colors, light_direction=LIGHT_DIRECTION, shadows=False)
-            bright = unlit.rgba[:, :3].mean(1)
-            blocked = torch.where(bright > 0, 1.0 - lit.rgba[:, :3].mean(1) / bright.clamp_min(1e-6), 0.0)
-            blocked = blocked.clamp(0, 1).reshape(shape)
-        return Frame(lit.rgba.reshape(*shape, 4), lit.depth.reshape(shape), blocked)
-
-
-class ParticleRenderBackend:
-    """The deformed particles splatted as discs of their radius, nearest first, in the colour of the nearest
-    mesh vertex.
-
-    Args:
-        model: the discretised body.
-        colors: ``[P, 3]`` albedo per particle.
-    """
-
-    def __init__(self, model: QGMLSModel, colors: torch.Tensor, max_radius_px: int = 4):
-        self.model = model
-        self.colors = colors.float()
-        self.radius = (3.0 * model.volume / (4.0 * math.pi)).pow(1.0 / 3.0).float()
-        self.max_radius_px = max_radius_px
-
-    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
-        W, H = cameras.width, cameras.height
-        x = self.model.particles.positions(q).float().cpu()
-        c2w = cameras.c2w[view].cpu()
-        local = (x - c2w[:3, 3]) @ c2w[:3, :3]  # camera frame, looking down −z
-        z = -local[:, 2]
-        front = z > 1e-3
-        u = cameras.fx[view] * local[:, 0] / z.clamp_min(1e-3) + cameras.cx[view]
-        v = -cameras.fy[view] * local[:, 1] / z.clamp_min(1e-3) + cameras.cy[view]
-        radius_px = (cameras.fx[view] * self.radius.cpu() / z.clamp_min(1e-3)).clamp(0.5, self.max_radius_px)
-        depth = torch.full((H * W,), math.inf)
-        owner = torch.full((H * W,), -1, dtype=torch.long)
-        distance = (x - c2w[:3, 3]).norm(dim=1)
-        reach = int(math.ceil(float(radius_px.max()))) if len(radius_px) else 0
-        for dy in range(-reach, reach + 1):
-            for dx in range(-reach, reach + 1):
-                col, row = torch.floor(u).long() + dx, torch.floor(v).long() + dy
-                inside = front & (col >= 0) & (col < W) & (row >= 0) & (row < H) & (dx * dx + dy * dy <= radius_px**2)
-                pixel = (row * W + col)[inside]
-                depth.scatter_reduce_(0, pixel, distance[inside], reduce="amin")
-        for dy in range(-reach, reach + 1):
-            for dx in range(-reach, reach + 1):
-                col, row = torch.floor(u).long() + dx, torch.floor(v).long() + dy
-                inside = front & (col >= 0) & (col < W) & (row >= 0) & (row < H) & (dx * dx + dy * dy <= radius_px**2)
-                pixel = (row * W + col)[inside]
-                nearest = depth[pixel] == distance[inside]
-                owner[pixel[nearest]] = torch.nonzero(inside)[:, 0][nearest]
-        rgba = torch.zeros(H * W, 4)
-        hit = owner >= 0
-        rgba[hit, :3] = self.colors.cpu()[owner[hit]]
-        rgba[hit, 3] = 1.0
-        return Frame(rgba.reshape(H, W, 4), depth.reshape(H, W), None)
+def _field_names(cls) -> set[str]:
+    return {f.name for f in fields(cls)}
 
 
 def project_state(source: QGMLSModel, target: QGMLSModel, state: StateQGMLS) -> StateQGMLS:
@@ -363,7 +223,7 @@ class Simulation:
     def __init__(self, config: SimulationConfig = SimulationConfig(), progress: Progress | None = None):
         backend.init()
         self.config = config
-        setup = SCENE_SETUPS.get(config.scene, _GENERIC_SETUP)
+        setup = config.setup
         self.material = config.material or setup.material
         self.setup = setup
         self._progress(progress, "loading scene", 0.0)
@@ -372,13 +232,7 @@ class Simulation:
         self.breakdown = TimeBreakdown()
         self.last_report = StepReport()
         self.particle_radius = config.particle_radius or setup.particle_radius or self._extent / 40.0
-        self.discretization = DiscretizationConfig(
-            kernel_count=config.kernel_count or setup.kernel_count,
-            order=config.order,
-            kernel_lloyd_iterations=config.lloyd_iterations,
-            ip_lloyd_iterations=config.lloyd_iterations,
-            cuts=tuple(config.cuts),
-        )
+        self.discretization = config.body_discretization()
         self._progress(progress, "sampling particles", 0.1)
         self.particles = poisson_disk_sample(self.density, self.particle_radius, seed=config.seed)
         self._build(progress)
@@ -395,9 +249,6 @@ class Simulation:
         name = self.config.scene
         self.nerf = None
         if name not in SCENES and Path(name).suffix == ".pt":
-            from pienerf.nerf_backend import NerfSceneDensity, nerf_proxy_mesh
-            from pienerf.train import load_checkpoint
-
             self.nerf = load_checkpoint(name)
             self.density = NerfSceneDensity(self.nerf.field, self.nerf.grid, self.config.nerf_solid_resolution)
             self.mesh_vertices, self.mesh_faces, self.mesh_colors = nerf_proxy_mesh(self.density)
@@ -406,9 +257,7 @@ class Simulation:
             self.mesh_vertices, self.mesh_faces, self.mesh_colors = mesh.vertices, mesh.faces, mesh.colors
             self.density = scene_density(name)
         else:
-            import trimesh
-
-            from pienerf.density import MeshDensity
+            import trimesh  # deferred: only mesh-file scenes need it
 
             loaded = trimesh.load(name, force="mesh")
             self.density = MeshDensity(loaded)
@@ -448,12 +297,12 @@ class Simulation:
         self.particle_colors = self._nearest_vertex_colors(self.particles.position.cpu())
         self.render_backends["particles"] = ParticleRenderBackend(self.model, self.particle_colors)
         E = self.material.young_modulus
-        stiffness = self.config.drag_stiffness or 0.05 * E
+        stiffness, damping = self.config.drag.spring(E)
         drag = DragController(
             self.model,
             stiffness=stiffness,
-            damping=self.config.drag_damping if self.config.drag_damping is not None else 0.1 * stiffness,
-            max_acceleration=self.config.max_acceleration,
+            damping=damping,
+            max_acceleration=self.config.drag.max_acceleration,
             density=self.material.density,
             surface=self._mesh_backend.surface(),
         )
@@ -466,14 +315,7 @@ class Simulation:
         self._progress(progress, "ready", 1.0)
 
     def _make_solver(self) -> None:
-        config = self.config
-        solver_config = SolverConfig(
-            gravity=tuple(config.gravity),
-            rayleigh_alpha=config.rayleigh_alpha,
-            rayleigh_beta=config.rayleigh_beta,
-            newton_iterations=config.newton_iterations,
-        )
-        self.solver = SolverQGMLS(self.model, self.material, solver_config)
+        self.solver = SolverQGMLS(self.model, self.material, self.config.solver)
 
     def _nearest_vertex_colors(self, points: torch.Tensor) -> torch.Tensor:
         vertices = self.mesh_vertices.float()
@@ -526,14 +368,13 @@ class Simulation:
             if v is not None
         }
         material = replace(self.material, **changes)
-        config_changes = {}
+        solver_changes = {}
         if damping is not None:
-            config_changes["rayleigh_alpha"] = float(damping)
+            solver_changes["rayleigh_alpha"] = float(damping)
         if gravity is not None:
-            config_changes["gravity"] = tuple(float(g) for g in gravity)
-        if config_changes:
-            config = replace(self.config, **config_changes)
-            SolverConfig(gravity=config.gravity, rayleigh_alpha=config.rayleigh_alpha)  # validates first
+            solver_changes["gravity"] = tuple(float(g) for g in gravity)
+        if solver_changes:
+            config = replace(self.config, solver=replace(self.config.solver, **solver_changes))  # validates first
             self.config = config
             self.material = material
             self._make_solver()
@@ -575,8 +416,51 @@ class Simulation:
         """Move the drag target along a new ray at the picked depth, or to ``target`` (m)."""
         return self.interaction.drag.update(ray_origin, ray_direction, target=target)
 
+    def grab(self, point) -> None:
+        """Start a drag at the material point nearest ``point [3]`` (m, rest space), as a scripted mouse does."""
+        self.interaction.drag.grab(point, self.state.q)
+
     def release(self) -> None:
+        """Let go of the dragged point."""
         self.interaction.drag.release()
+
+    @property
+    def dragging(self) -> bool:
+        """Whether a point is picked and dragged."""
+        return self.interaction.drag.dragging
+
+    @property
+    def drag_target(self) -> torch.Tensor | None:
+        """``[3]`` where the drag spring pulls the picked point (m), or ``None`` when nothing is dragged."""
+        return self.interaction.drag.target if self.dragging else None
+
+    def pin_picked(self) -> int:
+        """Pin the material around the picked point where it is now; returns how many particles."""
+        return self.interaction.pin_picked(self.state.q)
+
+    def push_picked(self, force=None) -> None:
+        """A constant force at the picked point (N, ``[3]``); default half the body's weight along −z."""
+        if force is None:
+            weight = self.material.density * float(self.model.volume.sum()) * 9.81
+            force = (0.0, 0.0, -0.5 * weight)
+        self.interaction.push_picked(force)
+
+    def pin_region(self, lo, hi) -> int:
+        """Pin every particle resting in the box ``[lo, hi]`` (m) where it is now; returns how many."""
+        return self.interaction.pin_region(lo, hi, self.state.q)
+
+    def add_force(self, point, force) -> None:
+        """A constant force ``force [3]`` (N) at the material point ``point [3]`` (m, rest space)."""
+        self.interaction.add_force(point, force)
+
+    def clear_forces(self) -> None:
+        """Remove every constant force (pins and the drag stay)."""
+        self.interaction.forces.clear()
+
+    @property
+    def material_models(self) -> tuple[str, ...]:
+        """The material models the solver knows (:data:`pienerf.materials.MATERIAL_MODELS`), for menus."""
+        return tuple(MATERIAL_MODELS)
 
     # -- output --------------------------------------------------------------------------------
 
@@ -594,7 +478,7 @@ class Simulation:
         ground: bool | None = None,
         shadow_resolution: int = 64,
     ):
-        """Add a warped-NeRF render mode (:class:`pienerf.nerf_backend.NerfRenderBackend`) of a trained field.
+        """Add a warped-NeRF render mode (:class:`pienerf.preview.NerfRenderBackend`) of a trained field.
 
         Args:
             field, grid: the rest-space NeRF (:class:`pienerf.nerf.NGPField`) and its occupancy grid, in this
@@ -608,9 +492,6 @@ class Simulation:
         Returns:
             The backend (its ``downscale`` and ``mode`` may be changed later).
         """
-        from pienerf.nerf_backend import NerfRenderBackend
-        from pienerf.render import GroundPlane
-
         plane = None
         if self.config.floor if ground is None else ground:
             plane = GroundPlane(height=0.0, extent=max(1.5, 2.0 * self._extent), shadow_resolution=shadow_resolution)

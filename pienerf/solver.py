@@ -161,10 +161,6 @@ class StepReport:
     time_solve: float = 0.0
     time_other: float = 0.0
 
-    @property
-    def time_total(self) -> float:
-        return self.time_assembly + self.time_solve + self.time_other
-
 
 class SolverQGMLS:
     """Implicit Euler with Newton and dense Cholesky on a :class:`QGMLSModel` (Eq. 2, 18).

@@ -33,8 +33,8 @@ from pathlib import Path
 import torch
 
 from kernels import backend
+from kernels.image_metrics import psnr, ssim
 from pienerf.data import Cameras, NerfDataset
-from pienerf.metrics import psnr, ssim
 from pienerf.nerf import NGPConfig, NGPField, OccupancyGrid, render_rays
 
 __all__ = ["CHECKPOINT_FORMAT", "NerfCheckpoint", "TrainConfig", "Trainer", "load_checkpoint", "save_checkpoint"]

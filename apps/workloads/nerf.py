@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 
 import torch
 
@@ -24,10 +23,14 @@ from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from kernels.reference.volume_render import composite_torch
 from kernels.volume_render import composite
+from pienerf.data import Cameras, NerfDataset, load_nerf_dataset
+from pienerf.nerf import NGPConfig, NGPField
+from pienerf.paths import SHARED_DATA
+from pienerf.train import TrainConfig, Trainer
 
 # rays, mean samples per ray
 _RENDER_SIZES = {"smoke": (4096, 64), "paper": (1 << 14, 128), "large": (1 << 18, 128)}
-_LEGO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nerf_synthetic_lego"
+_LEGO = SHARED_DATA / "nerf_synthetic_lego"
 _PSNR_TARGET = 30.0
 _PSNR_BUDGET_S = 480.0
 
@@ -77,8 +80,6 @@ def bench_volume_render(device: str, size: str) -> Case:
 
 def _ball_dataset(views: int, size: int):
     """A ball with a smooth colour pattern, seen from ``views`` cameras; RGBA rendered analytically."""
-    from pienerf.data import Cameras, NerfDataset
-
     fov, radius = 0.8, 0.6
     focal = 0.5 * size / math.tan(0.5 * fov)
     golden = math.pi * (3.0 - math.sqrt(5.0))
@@ -106,10 +107,6 @@ def _ball_dataset(views: int, size: int):
 
 @workload("nerf_train", "NGP NeRF training iterations (smoke: synthetic ball; paper: lego 800x800, time to 30 dB)")
 def bench_nerf_train(device: str, size: str) -> Case:
-    from pienerf.data import load_nerf_dataset
-    from pienerf.nerf import NGPConfig, NGPField
-    from pienerf.train import TrainConfig, Trainer
-
     torch.manual_seed(0)
     extra: dict = {}
     if size == "smoke":

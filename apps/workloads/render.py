@@ -5,12 +5,12 @@
 * ``render_deformed``: frames per second of :class:`pienerf.render.DeformedRenderer` rendering a trained NeRF under
   a smooth random deformation (q with 2 cm Gaussian entries), at 64² (smoke), 200² on the CPU / 800² on CUDA
   (paper: lego-sized frames) and 400² / 1600² (large). The scene is the teapot's NeRF
-  (:func:`pienerf.nerf_backend.scene_nerf`, the default fit: 48 views of 64², 1000 steps, ~4 min on this
-  project's CPU the first time, then cached; at smoke size a short fit of 12 views of 32² and 100 steps, ~20 s,
-  whose NeRF is fuzzier but renders the same teapot) with the teapot's 3 cm grid body and 24 kernels; at paper size
+  (:func:`pienerf.nerf_fit.scene_nerf`, the default fit: 48 views of 64², 1000 steps, fitted the first time,
+  then cached; at smoke size a short fit of 12 views of 32² and 100 steps, whose NeRF is fuzzier but renders the
+  same teapot) with the teapot's 3 cm grid body and 24 kernels; at paper size
   on CUDA, when ``../shared/data/nerf_synthetic_lego`` exists beside the repository, the lego's NeRF
-  (:func:`pienerf.nerf_backend.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
-  solid the NeRF shows (:class:`pienerf.nerf_backend.NerfSceneDensity`) and 32 kernels, as the lego scenario,
+  (:func:`pienerf.nerf_fit.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
+  solid the NeRF shows (:class:`pienerf.nerf_solid.NerfSceneDensity`) and 32 kernels, as the lego scenario,
   seen from 4.2 m. A trained NeRF matters: early ray termination only saves samples behind real opacity. Timed:
   the frame state (deformed IPs, forward-warped occupancy) and the rounds of march, nearest IPs, warp, NeRF queries
   and compositing. Recorded besides: ``samples_marched``, ``samples_queried`` and ``rounds`` of a frame, and
@@ -20,31 +20,12 @@
   :func:`kernels.reference.warp_rays.warp_to_rest_torch`, composited by
   :func:`kernels.reference.volume_render.composite_torch`.
 
-Measured on this project's shared 2-core CPU under load from other jobs: ``warp_rays`` paper (1M samples) 168 ms,
-6.2 Msamples/s, 161x the reference (load average ~6). ``render_deformed`` (load average ~3): smoke 308 ms per frame
-(81k samples marched where a full march has 86k, 66k queried, 9 rounds; reference 6.5 s), paper 1.82 s (707k of
-746k marched, 592k queried, 9 rounds; reference 25.9 s). The same frames timed alternately in one process against
-the renderer that marched, warped and queried every sample per 4096 rays: 0.58 s and 6.1 s for it, 0.21 s and
-1.49 s for it with torch on one thread, 0.22 s and 1.44 s here; so on this CPU nearly all the gain is the torch
-threading, as the fitted teapot's NeRF is too translucent for early termination to save much (5 % of the samples).
-The rounds are meant for CUDA, where that renderer's 157 chunks of an 800² frame cost launches and syncs. With
-the round kernels of the warp in one call (:func:`kernels.warp_rays.warp_round`) and one sync a round, paper took
-1.11 s (5 reps, run alone), and 1.08 s with the occupancy splat as a kernel.
-
-On an H100 (``--device cuda --size paper --reps 21``, lego at 800²): 29.6 ms per frame, 33.7 frames/s (min 29.0,
-max 31.2 ms), 67x the reference (1.98 s); 5 rounds, 10.8M samples marched where a full march has 14.0M, 8.4M
-queried. A second run on the same machine gave 39.7 ms (min 30.6 ms) while its reference also slowed, to 2.22 s:
-the figure follows the host, and another machine start gave 31.8 and 29.2 ms before the occupancy splat became a
-kernel. History: the renderer without rounds took 551 ms; rounds with Taichi kernels 37.0 ms; with the Warp ones
-32.7-35.4 ms over four machine starts, before the rays' encoded directions were gathered by a kernel of their own
-(:func:`kernels.volume_render.gather_ray_rows`: 0.5 ms of a frame where torch's gather took 5 ms). The GPU is busy
-~22 ms of a frame (profiled: nearest IPs 4.9 ms, warp 2.4 ms, march 1.8 ms, float16 MLPs ~5 ms, the hash encoding
-1.9 ms); the rest is the host's Python and launches, ~40 torch operations and five kernel launches a round.
+Figures of both workloads on the CPU and on an H100, with their history: ``docs/benchmarks.md``.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import dataclasses
 
 import torch
 
@@ -55,8 +36,16 @@ from kernels.reference.warp_rays import warp_to_rest_torch
 from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import march_rays
 from kernels.warp_rays import warp_to_rest
+from pienerf.cameras import orbit_cameras
+from pienerf.model import DiscretizationConfig, QGMLSModel
+from pienerf.nerf_fit import NerfFit, dataset_nerf, scene_nerf
+from pienerf.nerf_solid import NerfSceneDensity
+from pienerf.paths import SHARED_DATA
+from pienerf.render import DeformedRenderer
+from pienerf.sampling import grid_sample, poisson_disk_sample
+from pienerf.scenes import scene_cameras, scene_density
 
-_LEGO = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "nerf_synthetic_lego"
+_LEGO = SHARED_DATA / "nerf_synthetic_lego"
 _WARP_SAMPLES = {"smoke": 1 << 16, "paper": 1 << 20, "large": 1 << 23}
 _RESOLUTION = {  # pixels per image side, by size and device
     "smoke": {"cpu": 64, "cuda": 64},
@@ -98,9 +87,6 @@ def bench_warp_rays(device: str, size: str) -> Case:
 
 def _deformed(field, grid, particles, kernel_count: int):
     """A renderer of ``field`` warped by a Q-GMLS body on ``particles``, and a smooth random q."""
-    from pienerf.model import DiscretizationConfig, QGMLSModel
-    from pienerf.render import DeformedRenderer
-
     model = QGMLSModel.from_particles(particles, DiscretizationConfig(kernel_count=kernel_count))
     renderer = DeformedRenderer(field, grid, model)
     generator = torch.Generator().manual_seed(0)
@@ -110,12 +96,6 @@ def _deformed(field, grid, particles, kernel_count: int):
 
 def _teapot_scene(size: str, resolution: int):
     """The teapot's NeRF (a short fit at smoke size), its 3 cm grid body with 24 kernels, and the first view."""
-    import dataclasses
-
-    from pienerf.nerf_backend import NerfFit, scene_nerf
-    from pienerf.sampling import grid_sample
-    from pienerf.scenes import scene_cameras, scene_density
-
     fit, fit_name = NerfFit(), "default"
     if size == "smoke":
         fit = dataclasses.replace(fit, views=12, resolution=32, train=dataclasses.replace(fit.train, steps=100))
@@ -129,10 +109,6 @@ def _teapot_scene(size: str, resolution: int):
 def _lego_scene(resolution: int):
     """The lego's NeRF (the default fit), a body Poisson-disk sampled from its solid (4 cm, 32 kernels, as the lego
     scenario), and a view from 4.2 m at 20° elevation."""
-    from pienerf.nerf_backend import NerfFit, NerfSceneDensity, dataset_nerf
-    from pienerf.sampling import poisson_disk_sample
-    from pienerf.session import orbit_cameras
-
     trained = dataset_nerf(_LEGO, NerfFit())
     solid = NerfSceneDensity(trained.field, trained.grid, resolution=96)
     particles = poisson_disk_sample(solid, 0.04, seed=0)

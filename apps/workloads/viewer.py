@@ -3,27 +3,26 @@
 ``viewer_frame``: ``Simulation.step()`` + ``Simulation.render(mode="mesh")`` at 320×240 (smoke: 160×120), what
 :mod:`apps.demo` does each frame in its default mode. ``viewer_frame_nerf``: the same with the warped-NeRF mode
 (quadratic ray warping of the plant's NeRF, fitted on first use and cached, see
-:func:`pienerf.nerf_backend.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
+:func:`pienerf.nerf_fit.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
 Throughput is frames per second of step + render.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 from apps.workloads import Case, workload
 from kernels import backend
+from pienerf.cameras import orbit_cameras
+from pienerf.nerf_fit import NerfFit, scene_nerf
+from pienerf.session import Simulation, SimulationConfig
 
 _SIZE = {"smoke": (160, 120), "paper": (320, 240), "large": (640, 480)}
 
 
 def _case(size: str, mode: str) -> Case:
-    from pienerf.session import Simulation, SimulationConfig, orbit_cameras
-
     simulation = Simulation(SimulationConfig(scene="plant"))
     if mode == "nerf":
-        import dataclasses
-
-        from pienerf.nerf_backend import NerfFit, scene_nerf
-
         fit = NerfFit()  # the viewer's own fit, so its cached checkpoint is reused
         if size == "smoke":
             fit = dataclasses.replace(fit, views=12, resolution=32, train=dataclasses.replace(fit.train, steps=50))

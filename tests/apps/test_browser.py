@@ -13,8 +13,8 @@ import threading
 import pytest
 import torch
 
-from apps import demo
-from tests.apps.test_demo import free_port
+from pienerf.viewer import build_app
+from tests.pienerf.test_viewer import free_port
 
 CHROMIUM = shutil.which("chromium")
 
@@ -34,7 +34,7 @@ def test_click_and_drag_moves_the_body(device, tmp_path):
     from playwright.sync_api import sync_playwright
 
     assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
-    app = demo.build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
+    app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
     sim = app.simulation
     drag = sim.interaction.drag
     loop = threading.Thread(target=app.run, kwargs={"frame_seconds": 0.02}, daemon=True)

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from apps import render
+from pienerf import scenario as scenario_module
 
 SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios").glob("*.toml"))
 
@@ -38,10 +39,10 @@ def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
     out = tmp_path / scenario.stem
     metrics = _run(scenario, out, device)
     if "skipped" in metrics:
-        assert scenario.stem == "lego" and not (render.SHARED_DATA / "nerf_synthetic_lego").is_dir()
+        assert scenario.stem == "lego" and not (scenario_module.SHARED_DATA / "nerf_synthetic_lego").is_dir()
         assert "nerf_synthetic_lego is absent" in metrics["skipped"]
         return
-    spec = render.load_scenario(scenario, smoke=True)
+    spec = scenario_module.load_scenario(scenario, smoke=True)
     frames = spec["solver"]["frames"] + 1
     outputs = {"frames": True, "mp4": True, "depth": False, "shadow": False, **spec.get("outputs", {})}
     assert metrics["frames"] == frames and (out / "time_breakdown.png").is_file()
@@ -114,7 +115,7 @@ def _check_nerf_outputs(name: str, out: Path, metrics: dict, cache: Path) -> Non
 
 
 def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_path, monkeypatch):
-    monkeypatch.setattr(render, "SHARED_DATA", tmp_path / "no-data")
+    monkeypatch.setattr(scenario_module, "SHARED_DATA", tmp_path / "no-data")
     metrics = _run(SCENARIOS[0].parent / "lego.toml", tmp_path / "lego", device)
     assert metrics["skipped"].startswith(f"data folder {tmp_path / 'no-data' / 'nerf_synthetic_lego'} is absent")
     assert not (tmp_path / "lego" / "frames").exists()

@@ -17,12 +17,13 @@ import torch
 
 from kernels import backend
 from kernels.hashgrid import HashGridConfig
+from kernels.image_metrics import psnr, ssim
 from pienerf import scenes
+from pienerf.cameras import orbit_cameras
 from pienerf.data import load_nerf_dataset
-from pienerf.metrics import psnr, ssim
 from pienerf.nerf import NerfDensity, NGPConfig, NGPField, OccupancyGrid, render_rays, spherical_harmonics
-from pienerf.nerf_backend import NerfFit, scene_nerf
-from pienerf.session import Simulation, SimulationConfig, orbit_cameras
+from pienerf.nerf_fit import NerfFit, scene_nerf
+from pienerf.session import Simulation, SimulationConfig
 from pienerf.train import TrainConfig, Trainer, load_checkpoint, save_checkpoint
 
 AABB = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -387,9 +388,9 @@ def test_scene_nerf_is_cached_as_a_checkpoint(device, teapot_nerf):
     assert other.digest(scene="teapot") != TINY_FIT.digest(scene="teapot") != TINY_FIT.digest(scene="plant")
 
 
-def test_nerf_backend_renders_the_object_and_follows_the_deformation(device, teapot_nerf):
+def test_nerf_render_backend_renders_the_object_and_follows_the_deformation(device, teapot_nerf):
     trained, _ = teapot_nerf
-    sim = Simulation(SimulationConfig(scene="teapot", floor=False, **SMOKE_BODY))
+    sim = Simulation(SimulationConfig.create("teapot", floor=False, **SMOKE_BODY))
     renderer = sim.add_nerf_render(trained.field, trained.grid)
     assert renderer.ground is None and sim.render_backends["nerf"] is renderer
     cameras = orbit_cameras(sim.centre, 2.0, [30.0], 20.0, 40, 32)
@@ -426,7 +427,7 @@ def test_nerf_backend_renders_the_object_and_follows_the_deformation(device, tea
 def test_simulation_of_a_nerf_checkpoint_samples_its_solid(device, teapot_nerf):
     _, cache = teapot_nerf
     (path,) = list(cache.glob("scenes/teapot-*/ngp-*.pt"))
-    sim = Simulation(SimulationConfig(scene=str(path), nerf_solid_resolution=48, **SMOKE_BODY))
+    sim = Simulation(SimulationConfig.create(str(path), nerf_solid_resolution=48, **SMOKE_BODY))
     solid = scenes.scene_density("teapot")
     # The particles fill the teapot's body: none lies in the NeRF's empty space, and they span the body.
     distance = solid.signed_distance(sim.particles.position.double().cpu())

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from kernels import backend
+from pienerf.cut import CutMask, CutPlane
 from pienerf.qgmls import (
     QUADRATIC_TERMS,
     QGMLSBasis,
@@ -266,8 +267,6 @@ def test_linear_gmls_reproduces_affine_fields_with_degenerate_centres(device, la
 
 
 def test_cut_plane_hides_kernels_across_it(device):
-    from pienerf.cut import CutMask, CutPlane
-
     centres = _on(torch.tensor([[0.2, 0.0, 0.0], [0.8, 0.0, 0.0]], dtype=F64))
     points = _on(torch.tensor([[0.4, 0.0, 0.0], [0.6, 0.0, 0.0], [0.6, 0.9, 0.0]], dtype=F64))
     plane = CutPlane((0.5, 0.0, 0.0), (1.0, 0.0, 0.0))

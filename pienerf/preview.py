@@ -1,0 +1,316 @@
+"""Previews of a simulated body: render backends behind one small interface, and how a viewer schedules them.
+
+A :class:`RenderBackend` renders the body at generalized coordinates ``q`` seen by one view of some
+:class:`pienerf.data.Cameras` into a :class:`Frame` (straight-alpha RGBA, depth along each ray, optional shadow):
+
+* :class:`MeshRenderBackend`: the scene's mesh carried by the Q-GMLS displacement field, x(X) = X + Σ_s N_s(X) q_s
+  (Eq. 9), whose shape functions at the rest vertices are precomputed once; each frame moves the vertices, refits
+  the BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`).
+* :class:`ParticleRenderBackend`: the deformed particles splatted as discs with the colour of the nearest mesh
+  vertex.
+* :class:`NerfRenderBackend`: a trained NeRF rendered by quadratic (or linear) ray warping, Eq. 19–21
+  (:class:`pienerf.render.DeformedRenderer`), at a ``downscale`` a viewer raises while the user drags and lowers to
+  1 to refine a still view, as :class:`RefinementSchedule` decides.
+
+Backends that hold the discretised body (a ``rebind(model)`` method) follow it through re-sampling and cuts.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple, Protocol
+
+import torch
+
+from kernels import backend
+from kernels.raycast import MeshBVH, shade
+from pienerf.data import Cameras
+from pienerf.model import QGMLSModel
+from pienerf.nerf import OccupancyGrid
+from pienerf.picking import PickSurface
+from pienerf.render import MODES, DeformedRenderer, GroundPlane
+from pienerf.scenes import LIGHT_DIRECTION
+
+__all__ = [
+    "Frame",
+    "MeshRenderBackend",
+    "NerfRenderBackend",
+    "ParticleRenderBackend",
+    "RefinementSchedule",
+    "RenderBackend",
+]
+
+
+class Frame(NamedTuple):
+    """One rendered view.
+
+    Attributes:
+        rgba: ``[H, W, 4]`` float32 in [0, 1], straight alpha.
+        depth: ``[H, W]`` float32 distance along each pixel ray (m), ``inf`` where nothing is hit.
+        shadow: ``[H, W]`` float32 in [0, 1], share of the direct light blocked at each visible point, or ``None``.
+    """
+
+    rgba: torch.Tensor
+    depth: torch.Tensor
+    shadow: torch.Tensor | None = None
+
+
+class RenderBackend(Protocol):
+    """Renders the body at generalized coordinates ``q [nT, 3]`` seen by one view of ``cameras``."""
+
+    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame: ...
+
+
+class MeshRenderBackend:
+    """The scene mesh deformed by the Q-GMLS field, ray traced with shadows onto a ground plane.
+
+    Args:
+        model: the discretised body.
+        vertices: ``[V, 3]`` rest vertices (m).
+        faces: ``[F, 3]`` vertex indices.
+        colors: ``[V, 3]`` albedo in [0, 1].
+        ground_height: y of the ground plane (m), or ``None`` for none.
+        ground_color: albedo of the ground.
+    """
+
+    def __init__(
+        self,
+        model: QGMLSModel,
+        vertices: torch.Tensor,
+        faces: torch.Tensor,
+        colors: torch.Tensor,
+        ground_height: float | None = 0.0,
+        ground_color=(0.82, 0.82, 0.8),
+    ):
+        device = backend.torch_device()
+        self.handle = model.handle(vertices)
+        self.body_vertices = vertices.shape[0]
+        vertices, faces, colors = vertices.float(), faces.long(), colors.float()
+        if ground_height is not None:
+            lo, hi = vertices.amin(0), vertices.amax(0)
+            centre, half = 0.5 * (lo + hi), 4.0 * float((hi - lo).max())
+            corners = torch.tensor([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=torch.float32) * half
+            ground = torch.stack(
+                [corners[:, 0] + centre[0], torch.full((4,), float(ground_height)), corners[:, 1] + centre[2]], dim=1
+            )
+            base = vertices.shape[0]
+            faces = torch.cat([faces, torch.tensor([[0, 2, 1], [0, 3, 2]]) + base])
+            vertices = torch.cat([vertices, ground])
+            colors = torch.cat([colors, torch.tensor(ground_color, dtype=torch.float32).expand(4, 3)])
+        self.rest_vertices = vertices.to(device)
+        self.colors = colors.to(device).contiguous()
+        self.bvh = MeshBVH(self.rest_vertices, faces.to(device=device, dtype=torch.int32))
+        self._vertices = self.rest_vertices.clone()
+
+    def deform(self, q: torch.Tensor) -> torch.Tensor:
+        """Move the body's vertices to x(X) at ``q`` (Eq. 9) and refit the BVH; returns the ``[V, 3]`` vertices."""
+        self._vertices[: self.body_vertices] = self.handle.positions(q).to(self._vertices)
+        self.bvh.refit(self._vertices)
+        return self._vertices[: self.body_vertices]
+
+    def surface(self) -> PickSurface:
+        """The deformed mesh to pick on (kept current by :meth:`deform`)."""
+        return PickSurface(self.bvh, self.rest_vertices, self.body_vertices)
+
+    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
+        self.deform(q)
+        device = backend.torch_device()
+        origins, directions = cameras.rays(view)
+        origins, directions = origins.to(device), directions.to(device)
+        lit = shade(self.bvh, origins, directions, self.colors, light_direction=LIGHT_DIRECTION)
+        shape = (cameras.height, cameras.width)
+        blocked = None
+        if shadow:
+            unlit = shade(self.bvh, origins, directions, self.colors, light_direction=LIGHT_DIRECTION, shadows=False)
+            bright = unlit.rgba[:, :3].mean(1)
+            blocked = torch.where(bright > 0, 1.0 - lit.rgba[:, :3].mean(1) / bright.clamp_min(1e-6), 0.0)
+            blocked = blocked.clamp(0, 1).reshape(shape)
+        return Frame(lit.rgba.reshape(*shape, 4), lit.depth.reshape(shape), blocked)
+
+
+class ParticleRenderBackend:
+    """The deformed particles splatted as discs of their radius, nearest first, in the colour of the nearest
+    mesh vertex.
+
+    Args:
+        model: the discretised body.
+        colors: ``[P, 3]`` albedo per particle.
+    """
+
+    def __init__(self, model: QGMLSModel, colors: torch.Tensor, max_radius_px: int = 4):
+        self.model = model
+        self.colors = colors.float()
+        self.radius = (3.0 * model.volume / (4.0 * math.pi)).pow(1.0 / 3.0).float()
+        self.max_radius_px = max_radius_px
+
+    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
+        W, H = cameras.width, cameras.height
+        x = self.model.particles.positions(q).float().cpu()
+        cameras = cameras.to("cpu")
+        c2w = cameras.c2w[view]
+        u, v, z = cameras.project(view, x)
+        front = z > 1e-3
+        radius_px = (cameras.fx[view] * self.radius.cpu() / z.clamp_min(1e-3)).clamp(0.5, self.max_radius_px)
+        depth = torch.full((H * W,), math.inf)
+        owner = torch.full((H * W,), -1, dtype=torch.long)
+        distance = (x - c2w[:3, 3]).norm(dim=1)
+        reach = int(math.ceil(float(radius_px.max()))) if len(radius_px) else 0
+        for dy in range(-reach, reach + 1):
+            for dx in range(-reach, reach + 1):
+                col, row = torch.floor(u).long() + dx, torch.floor(v).long() + dy
+                inside = front & (col >= 0) & (col < W) & (row >= 0) & (row < H) & (dx * dx + dy * dy <= radius_px**2)
+                pixel = (row * W + col)[inside]
+                depth.scatter_reduce_(0, pixel, distance[inside], reduce="amin")
+        for dy in range(-reach, reach + 1):
+            for dx in range(-reach, reach + 1):
+                col, row = torch.floor(u).long() + dx, torch.floor(v).long() + dy
+                inside = front & (col >= 0) & (col < W) & (row >= 0) & (row < H) & (dx * dx + dy * dy <= radius_px**2)
+                pixel = (row * W + col)[inside]
+                nearest = depth[pixel] == distance[inside]
+                owner[pixel[nearest]] = torch.nonzero(inside)[:, 0][nearest]
+        rgba = torch.zeros(H * W, 4)
+        hit = owner >= 0
+        rgba[hit, :3] = self.colors.cpu()[owner[hit]]
+        rgba[hit, 3] = 1.0
+        return Frame(rgba.reshape(H, W, 4), depth.reshape(H, W), None)
+
+
+class NerfRenderBackend:
+    """The ``"nerf"`` render mode: the trained NeRF warped by the body's deformation (PIE-NeRF §4.6, Eq. 19–21).
+
+    Renders one view at ``1 / downscale`` of its pixels (pixel centres of the coarse grid) and repeats each coarse
+    pixel to the camera's size, so a viewer can set ``downscale`` to 4 while the user drags and back to 1 to refine
+    a still view. RGBA is straight alpha: the object's opacity, and 1 on the ground square when a ground is set.
+
+    Args:
+        field: the rest-space radiance field (:class:`pienerf.nerf.NGPField`).
+        grid: its occupancy grid.
+        model: the discretised body whose integrator points drive the warp (:meth:`rebind` after a re-sampling).
+        mode: ``"quadratic"`` (Eq. 20), ``"linear"`` (first-order warp, Fig. 8) or ``"rest"`` (no warp).
+        downscale: integer factor of the rendered resolution (1: every pixel).
+        ground: a lit ground plane that receives the object's shadow, or ``None``.
+        cutoff_scale: see :class:`pienerf.render.DeformedRenderer`.
+    """
+
+    def __init__(
+        self,
+        field,
+        grid: OccupancyGrid,
+        model,
+        *,
+        mode: str = "quadratic",
+        downscale: int = 1,
+        ground: GroundPlane | None = None,
+        cutoff_scale: float = 1.5,
+    ):
+        if mode not in MODES:
+            raise ValueError(f"unknown warping mode {mode!r}; valid modes: {', '.join(MODES)}")
+        self.field, self.grid, self.mode, self.ground = field, grid, mode, ground
+        self.cutoff_scale = cutoff_scale
+        self.downscale = downscale
+        self.rebind(model)
+
+    @property
+    def downscale(self) -> int:
+        """Rendered pixels are ``downscale × downscale`` blocks of the camera's pixels."""
+        return self._downscale
+
+    @downscale.setter
+    def downscale(self, value: int) -> None:
+        if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+            raise ValueError(f"downscale must be an integer >= 1, got {value!r}")
+        self._downscale = value
+
+    def rebind(self, model) -> None:
+        """Warp by another discretisation of the body (after a re-sampling or a cut)."""
+        self.model = model
+        self.renderer = DeformedRenderer(self.field, self.grid, model, cutoff_scale=self.cutoff_scale)
+        self._frame_q: torch.Tensor | None = None
+        self._frame = None
+
+    def _deformed_frame(self, q: torch.Tensor):
+        """The renderer's per-q state, rebuilt only when q changes (a still body renders several views cheaply)."""
+        if self._frame is None or self._frame_q.shape != q.shape or not torch.equal(self._frame_q, q.detach()):
+            self._frame = self.renderer.frame(self.renderer._check_q(q))
+            self._frame_q = q.detach().clone()
+        return self._frame
+
+    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
+        """Render the body at ``q [nT, 3]`` seen by view ``view``.
+
+        ``depth`` is the object's expected depth where its opacity exceeds ½, else the ground's distance on the
+        ground square, else ``inf``; ``shadow`` (when asked, with a ground) is the share of light the object
+        blocks on the visible ground, 0 on the object.
+        """
+        device = backend.torch_device()
+        width, height = cameras.width, cameras.height
+        w, h = max(1, math.ceil(width / self.downscale)), max(1, math.ceil(height / self.downscale))
+        origins, directions = cameras.to("cpu").grid_rays(view, w, h)
+        origins = origins.float().to(device).contiguous()
+        directions = directions.float().to(device).contiguous()
+        frame = None if self.mode == "rest" and self.ground is None else self._deformed_frame(q)
+        out = self.renderer.render(
+            q, rays=(origins, directions), mode=self.mode, background=(0.0, 0.0, 0.0), ground=self.ground, frame=frame
+        )
+        opacity = out["alpha"].clamp(0.0, 1.0)
+        depth = torch.where(opacity > 0.5, out["depth"], math.inf)
+        if self.ground is not None:
+            on_ground = out["on_ground"]
+            t_ground = (self.ground.height - origins[:, 1]) / directions[:, 1]
+            depth = torch.where((opacity <= 0.5) & on_ground, t_ground, depth)
+            alpha = opacity + (1.0 - opacity) * on_ground.float()
+        else:
+            alpha = opacity
+        straight = torch.where(alpha[:, None] > 1e-6, out["rgb"] / alpha.clamp_min(1e-6)[:, None], 0.0)
+        rgba = torch.cat([straight.clamp(0.0, 1.0), alpha[:, None]], dim=1)
+        blocked = None
+        if shadow and self.ground is not None:
+            blocked = ((1.0 - out["ground_transmittance"]) * (1.0 - opacity) * out["on_ground"].float()).clamp(0, 1)
+        frame = [rgba.reshape(h, w, 4), depth.reshape(h, w)] + ([blocked.reshape(h, w)] if blocked is not None else [])
+        if (h, w) != (height, width):
+            frame = [_upsample(image, height, width) for image in frame]
+        return Frame(frame[0], frame[1], frame[2] if blocked is not None else None)
+
+
+def _upsample(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Nearest-neighbour resize of ``[h, w, ...]`` to ``[height, width, ...]``."""
+    rows = (torch.arange(height, device=image.device) * image.shape[0]) // height
+    cols = (torch.arange(width, device=image.device) * image.shape[1]) // width
+    return image[rows][:, cols]
+
+
+class RefinementSchedule:
+    """The resolution a preview is rendered at: coarse while the body or the camera moves, full once still.
+
+    Args:
+        moving: downscale while things move.
+        still: downscale of the refined image.
+        tolerance: generalized coordinates that changed less than this (m) since the last render count as still.
+    """
+
+    def __init__(self, moving: int = 4, still: int = 1, tolerance: float = 1e-4):
+        self.moving, self.still, self.tolerance = moving, still, tolerance
+        self._q: torch.Tensor | None = None
+        self._camera = None
+        self._level: int | None = None
+
+    def next(self, q: torch.Tensor, camera) -> int | None:
+        """The downscale to render at now, or ``None`` when the shown image is already the refined one.
+
+        Args:
+            q: ``[nT, 3]`` the body's state.
+            camera: any comparable description of the view (changes when the camera moves).
+        """
+        moved = (
+            self._q is None
+            or self._q.shape != q.shape
+            or camera != self._camera
+            or float((q - self._q).abs().max()) > self.tolerance
+        )
+        if moved:
+            self._q, self._camera, self._level = q.detach().clone(), camera, self.moving
+            return self.moving
+        if self._level != self.still:
+            self._level = self.still
+            return self.still
+        return None

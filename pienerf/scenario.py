@@ -1,0 +1,583 @@
+"""Scripted experiments as TOML scenarios: the schema and its checks, and the pieces a scripted render is made of.
+
+A scenario names the scene, material, discretisation, solver settings, pins, keyframed drags, timed forces, cuts,
+colliders (a plane may move along keyframes), cameras (orbit or fixed) and outputs; optional ``[[variants]]``
+override the material or discretisation, and a ``[nerf]`` table fits a NeRF to render warped (PIE-NeRF §4.6). The
+format is described in :mod:`apps.render`, which writes the images and metrics.
+
+:func:`load_scenario` reads and checks a file (a bad key raises :class:`ScenarioError` naming the key and the fix);
+:func:`unmet_requirement` says why it cannot run here; :func:`prepare_nerf` fits or loads its NeRF;
+:func:`build_runs` makes one :class:`ScenarioRun` (a :class:`pienerf.session.Simulation`) per variant;
+:func:`advance` steps a run through one frame under the scenario's controls and colliders;
+:func:`scenario_cameras` gives the frame's cameras; :func:`merged_breakdown` and :func:`run_metrics` summarise.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
+import numpy as np
+import torch
+
+from pienerf.cameras import look_at_cameras, orbit_cameras
+from pienerf.cut import CutPlane
+from pienerf.data import Cameras
+from pienerf.materials import Material
+from pienerf.nerf_fit import NerfFit, dataset_nerf, dataset_nerf_path, scene_nerf
+from pienerf.paths import SHARED_DATA
+from pienerf.reports import TimeBreakdown, VolumeHistory
+from pienerf.session import SCENE_SETUPS, Simulation, SimulationConfig
+from pienerf.solver import PlaneCollider, SphereCollider
+
+__all__ = [
+    "NERF_WARPS",
+    "OUTPUT_DEFAULTS",
+    "ScenarioError",
+    "ScenarioNerf",
+    "ScenarioRun",
+    "advance",
+    "apply_controls",
+    "build_run",
+    "build_runs",
+    "keyframe",
+    "load_scenario",
+    "frame_count",
+    "merged_breakdown",
+    "nerf_fit",
+    "prepare_nerf",
+    "progress_log",
+    "run_metrics",
+    "sample_volumes",
+    "scenario_cameras",
+    "scenario_colliders",
+    "scenario_outputs",
+    "unmet_requirement",
+]
+
+_VEC3 = "vec3"
+_SCHEMA = {
+    "": {
+        "name": str,
+        "description": str,
+        "figure": str,
+        "requires": list,
+        "scene": dict,
+        "material": dict,
+        "discretization": dict,
+        "solver": dict,
+        "pins": list,
+        "drags": list,
+        "forces": list,
+        "cuts": list,
+        "colliders": list,
+        "cameras": dict,
+        "outputs": dict,
+        "variants": list,
+        "volume_samples": list,
+        "smoke": dict,
+        "pending": list,
+        "nerf": dict,
+    },
+    "scene": {"name": str, "floor": bool, "default_pins": bool},
+    "material": {"model": str, "young_modulus": float, "poisson_ratio": float, "density": float},
+    "discretization": {
+        "kernel_count": int,
+        "particle_radius": float,
+        "order": str,
+        "lloyd_iterations": int,
+        "seed": int,
+    },
+    "solver": {
+        "dt": float,
+        "frames": int,
+        "substeps": int,
+        "rayleigh_alpha": float,
+        "rayleigh_beta": float,
+        "gravity": _VEC3,
+        "newton_iterations": int,
+        "drag_stiffness": float,
+        "drag_damping": float,
+        "max_acceleration": float,
+    },
+    "pins": {"box": list},
+    "drags": {"point": _VEC3, "keys": list, "release": float},
+    "forces": {"point": _VEC3, "force": _VEC3, "start": float, "end": float},
+    "cuts": {"point": _VEC3, "normal": _VEC3, "radius": float},
+    "colliders": {"type": str, "point": _VEC3, "normal": _VEC3, "centre": _VEC3, "radius": float, "keys": list},
+    "cameras": {
+        "type": str,
+        "distance": float,
+        "elevation": float,
+        "azimuths": list,
+        "spin_deg_per_s": float,
+        "positions": list,
+        "look_at": _VEC3,
+        "width": int,
+        "height": int,
+        "fov": float,
+    },
+    "outputs": {"frames": bool, "mp4": bool, "depth": bool, "shadow": bool, "fps": float, "modes": list},
+    "variants": {"name": str, "material": dict, "discretization": dict, "modes": list},
+    "volume_samples": {"time": float, "label": str},
+    "smoke": {
+        "frames": int,
+        "width": int,
+        "height": int,
+        "kernel_count": int,
+        "particle_radius": float,
+        "lloyd_iterations": int,
+        "nerf": dict,
+    },
+    "nerf": {
+        "source": str,
+        "up": str,
+        "warps": list,
+        "steps": int,
+        "batch_rays": int,
+        "views": int,
+        "resolution": int,
+        "downscale": int,
+        "max_views": int,
+        "levels": int,
+        "log2_table_size": int,
+        "max_resolution": int,
+        "hidden": int,
+        "samples_per_diagonal": int,
+        "grid_resolution": int,
+        "grid_decay": float,
+        "solid_resolution": int,
+    },
+}
+
+NERF_WARPS = {"quadratic": "nerf", "linear": "nerf_linear", "rest": "nerf_rest"}
+"""Render mode of each ray warping of the ``[nerf]`` table."""
+
+
+_TYPE_NAMES = {int: "an integer", str: "a string", bool: "true or false", list: "an array", dict: "a table"}
+
+
+class ScenarioError(ValueError):
+    """A scenario key is missing, unknown or of the wrong type; the message names the key and the fix."""
+
+
+def _check_table(table: dict, section: str, where: str) -> None:
+    schema = _SCHEMA[section]
+    for key, value in table.items():
+        path = f"{where}.{key}" if where else key
+        if key not in schema:
+            raise ScenarioError(f"unknown key '{path}'; valid keys here: {', '.join(sorted(schema))}")
+        expected = schema[key]
+        if expected == _VEC3:
+            ok = (
+                isinstance(value, list)
+                and len(value) == 3
+                and all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)
+            )
+            if not ok:
+                raise ScenarioError(f"'{path}' must be 3 finite numbers like [0.0, 1.0, 0.0], got {value!r}")
+        elif expected is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ScenarioError(f"'{path}' must be a number, got {value!r}")
+        elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
+            raise ScenarioError(f"'{path}' must be {_TYPE_NAMES[expected]}, got {value!r}")
+        if section == "" and key in _SCHEMA and isinstance(value, dict):
+            _check_table(value, key, key)
+        if section == "smoke" and key == "nerf" and isinstance(value, dict):
+            _check_table(value, "nerf", path)
+        if section in ("", "variants") and key in ("material", "discretization") and isinstance(value, dict):
+            _check_table(value, key, path)
+        if section == "" and key in _SCHEMA and isinstance(value, list):
+            for i, item in enumerate(value):
+                if not isinstance(item, dict):
+                    raise ScenarioError(f"'{path}' must be an array of tables ([[{key}]]), item {i} is {item!r}")
+                _check_table(item, key, f"{path}[{i}]")
+
+
+def load_scenario(path: Path | str, smoke: bool = False) -> dict:
+    """Read and check a scenario; with ``smoke``, the ``[smoke]`` table shrinks it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScenarioError(
+            f"scenario file {path} does not exist; pass a .toml file such as assets/scenarios/plant_sway.toml"
+        )
+    try:
+        scenario = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as error:
+        raise ScenarioError(f"{path} is not valid TOML ({error}); fix the syntax at that line") from None
+    _check_table(scenario, "", "")
+    for key in ("scene", "cameras"):
+        if key not in scenario:
+            raise ScenarioError(f"missing table [{key}]; every scenario needs [scene] and [cameras]")
+    nerf = scenario.get("nerf")
+    if nerf is not None:
+        source = nerf.get("source", "scene")
+        if source != "scene" and not source.startswith("data:"):
+            raise ScenarioError(f'\'nerf.source\' must be "scene" or "data:NAME", got {source!r}')
+        for warp in nerf.get("warps", ["quadratic"]):
+            if warp not in NERF_WARPS:
+                raise ScenarioError(f"'nerf.warps' has {warp!r}; valid: {', '.join(NERF_WARPS)}")
+    from_data = nerf is not None and nerf.get("source", "scene").startswith("data:")
+    if "name" not in scenario["scene"] and not from_data:
+        raise ScenarioError(
+            "missing key 'scene.name'; set it to an embedded scene (plant, teapot, jelly, cloth, "
+            'sculpture) or a mesh path, or give [nerf] source = "data:NAME"'
+        )
+    if smoke and "smoke" in scenario:
+        shrink = scenario["smoke"]
+        solver, cameras = scenario.setdefault("solver", {}), scenario["cameras"]
+        discretization = scenario.setdefault("discretization", {})
+        for key in ("width", "height"):
+            if key in shrink:
+                cameras[key] = shrink[key]
+        if "frames" in shrink:
+            solver["frames"] = shrink["frames"]
+        for key in ("kernel_count", "particle_radius", "lloyd_iterations"):
+            if key in shrink:
+                discretization[key] = shrink[key]
+        for variant in scenario.get("variants", []):
+            for key in ("kernel_count", "particle_radius"):
+                if key in shrink and key in variant.get("discretization", {}):
+                    variant["discretization"][key] = shrink[key]
+        if "nerf" in shrink and "nerf" in scenario:
+            scenario["nerf"] = {**scenario["nerf"], **shrink["nerf"]}
+    return scenario
+
+
+def unmet_requirement(scenario: dict) -> str | None:
+    """Why the scenario cannot run here, or ``None``: ``"nerf_renderer"`` needs :mod:`pienerf.preview`'s warped-NeRF
+    renderer, ``"data:NAME"`` the folder :data:`pienerf.paths.SHARED_DATA` ``/ NAME``, ``"checkpoint:PATH"`` a
+    trained NeRF file."""
+    needs = list(scenario.get("requires", []))
+    source = scenario.get("nerf", {}).get("source", "scene")
+    if source.startswith("data:") and source not in needs:
+        needs.append(source)
+    for need in needs:
+        if need == "nerf_renderer":
+            if importlib.util.find_spec("pienerf.preview") is None:
+                return (
+                    "the warped-NeRF renderer pienerf.preview is not in this checkout; this scenario renders once it is"
+                )
+        elif need.startswith("data:"):
+            folder = SHARED_DATA / need[5:]
+            if not folder.is_dir():
+                return f"data folder {folder} is absent; place the dataset there"
+        elif need.startswith("checkpoint:"):
+            file = Path(need[11:])
+            if not file.is_file():
+                return f"trained NeRF checkpoint {file} is absent; train it with python -m pienerf.train"
+        else:
+            raise ScenarioError(
+                f"unknown requirement {need!r} in 'requires'; valid: nerf_renderer, data:NAME, checkpoint:PATH"
+            )
+    return None
+
+
+def keyframe(keys: list, t: float, where: str) -> torch.Tensor:
+    """Piecewise-linear interpolation of ``[[time, [x, y, z]], …]`` at time ``t`` (held past the ends)."""
+    try:
+        times = [float(k[0]) for k in keys]
+        values = torch.tensor([k[1] for k in keys], dtype=torch.float64)
+    except (TypeError, IndexError, ValueError):
+        raise ScenarioError(f"'{where}' must be [[time, [x, y, z]], ...], got {keys!r}") from None
+    if values.shape != (len(times), 3) or any(b < a for a, b in zip(times, times[1:], strict=False)):
+        raise ScenarioError(f"'{where}' must be [[time, [x, y, z]], ...] with increasing times, got {keys!r}")
+    if t <= times[0]:
+        return values[0]
+    for i in range(1, len(times)):
+        if t <= times[i]:
+            s = (t - times[i - 1]) / max(times[i] - times[i - 1], 1e-12)
+            return (1 - s) * values[i - 1] + s * values[i]
+    return values[-1]
+
+
+@dataclass
+class ScenarioRun:
+    """One variant of a scenario: its simulation, volume history, drag and render modes."""
+
+    name: str
+    simulation: Simulation
+    volumes: VolumeHistory
+    drags: list
+    modes: list
+
+
+@dataclass
+class ScenarioNerf:
+    """The scenario's fitted NeRF: the rest-space field and grid, its checkpoint when it is the simulated scene."""
+
+    field: object
+    grid: object
+    checkpoint: Path | None
+    warps: list
+    source: str
+    seconds: float
+    solid_resolution: int
+
+
+def nerf_fit(spec: dict) -> NerfFit:
+    """The :class:`pienerf.nerf_fit.NerfFit` of a ``[nerf]`` table: its defaults, overridden by the table's keys."""
+    base = NerfFit()
+    hashgrid = replace(
+        base.ngp.hashgrid, **{k: spec[k] for k in ("levels", "log2_table_size", "max_resolution") if k in spec}
+    )
+    ngp = {k: spec[k] for k in ("samples_per_diagonal", "grid_resolution", "grid_decay") if k in spec}
+    if "hidden" in spec:
+        ngp.update(density_hidden=spec["hidden"], color_hidden=spec["hidden"])
+    steps = spec.get("steps", base.train.steps)
+    train = replace(
+        base.train,
+        steps=steps,
+        batch_rays=spec.get("batch_rays", base.train.batch_rays),
+        grid_warmup_steps=min(base.train.grid_warmup_steps, max(1, steps // 4)),
+    )
+    sizes = {k: spec[k] for k in ("views", "resolution", "downscale", "max_views") if k in spec}
+    return NerfFit(ngp=replace(base.ngp, hashgrid=hashgrid, **ngp), train=train, **sizes)
+
+
+def progress_log(log, what: str):
+    """A ``(stage, fraction)`` callback that logs a line at every tenth of the way."""
+    reached = [-1]
+
+    def progress(stage: str, fraction: float) -> None:
+        tenth = int(10 * fraction)
+        if tenth > reached[0]:
+            reached[0] = tenth
+            log(f"{what}: {stage}")
+
+    return progress
+
+
+def prepare_nerf(scenario: dict, cache_dir, log) -> ScenarioNerf | None:
+    """Fit (or load from the cache) the NeRF of the scenario's ``[nerf]`` table; ``None`` without one.
+
+    ``log(line)`` hears the progress at every tenth of the way; ``cache_dir`` is :func:`pienerf.paths.cache_root`'s.
+    """
+    spec = scenario.get("nerf")
+    if spec is None:
+        return None
+    fit = nerf_fit(spec)
+    source = spec.get("source", "scene")
+    progress = progress_log(log, scenario.get("name", "scenario"))
+    start = time.perf_counter()
+    checkpoint = None
+    if source == "scene":
+        trained = scene_nerf(scenario["scene"]["name"], fit, cache_dir, progress)
+    else:
+        folder, up = SHARED_DATA / source[5:], spec.get("up", "z")
+        trained = dataset_nerf(folder, fit, up, cache_dir, progress)
+        checkpoint = dataset_nerf_path(folder, fit, up, cache_dir)
+    return ScenarioNerf(
+        trained.field,
+        trained.grid,
+        checkpoint,
+        list(spec.get("warps", ["quadratic"])),
+        source,
+        time.perf_counter() - start,
+        spec.get("solid_resolution", 96),
+    )
+
+
+def scenario_cameras(scenario: dict, centre, t: float) -> Cameras:
+    """The ``[cameras]`` table at time ``t`` (s): an orbit about ``centre [3]`` (m), turning at ``spin_deg_per_s``,
+    or fixed positions looking at one point."""
+    spec = scenario["cameras"]
+    width, height, fov = spec.get("width", 320), spec.get("height", 240), spec.get("fov", 40.0)
+    kind = spec.get("type", "orbit")
+    if kind == "orbit":
+        spin = spec.get("spin_deg_per_s", 0.0) * t
+        azimuths = [a + spin for a in spec.get("azimuths", [0.0])]
+        return orbit_cameras(
+            centre, spec.get("distance", 2.5), azimuths, spec.get("elevation", 15.0), width, height, fov
+        )
+    if kind == "fixed":
+        if "positions" not in spec or "look_at" not in spec:
+            raise ScenarioError("fixed cameras need 'cameras.positions' ([[x, y, z], ...]) and 'cameras.look_at'")
+        positions = torch.tensor(spec["positions"], dtype=torch.float64)
+        return look_at_cameras(positions, torch.tensor(spec["look_at"]).expand_as(positions), width, height, fov)
+    raise ScenarioError(f"'cameras.type' must be 'orbit' or 'fixed', got {kind!r}")
+
+
+def scenario_colliders(scenario: dict, t: float, floor: bool) -> list[PlaneCollider | SphereCollider]:
+    """The floor (when on) and the ``[[colliders]]`` at time ``t`` (s), keyframed planes moved."""
+    colliders = [PlaneCollider()] if floor else []
+    for i, spec in enumerate(scenario.get("colliders", [])):
+        kind = spec.get("type")
+        if kind == "plane":
+            point = spec.get("point", [0.0, 0.0, 0.0])
+            if "keys" in spec:
+                point = keyframe(spec["keys"], t, f"colliders[{i}].keys").tolist()
+            colliders.append(PlaneCollider(tuple(point), tuple(spec.get("normal", [0.0, 1.0, 0.0]))))
+        elif kind == "sphere":
+            if "centre" not in spec or "radius" not in spec:
+                raise ScenarioError(f"'colliders[{i}]' sphere needs 'centre' and 'radius'")
+            colliders.append(SphereCollider(tuple(spec["centre"]), float(spec["radius"])))
+        else:
+            raise ScenarioError(f"'colliders[{i}].type' must be 'plane' or 'sphere', got {kind!r}")
+    return colliders
+
+
+def build_run(
+    scenario: dict, variant: dict, nerf: ScenarioNerf | None = None, modes: list | None = None
+) -> ScenarioRun:
+    """The simulation of one variant: its config, the NeRF render modes, the pins and the drag (at most one)."""
+    scene = scenario["scene"]
+    material_spec = {**scenario.get("material", {}), **variant.get("material", {})}
+    discretization = {**scenario.get("discretization", {}), **variant.get("discretization", {})}
+    solver = scenario.get("solver", {})
+    name = str(nerf.checkpoint) if nerf is not None and nerf.checkpoint is not None else scene["name"]
+    base = SCENE_SETUPS[name].material if name in SCENE_SETUPS else Material()
+    cuts = tuple(
+        CutPlane(tuple(c["point"]), tuple(c["normal"]), c.get("radius", math.inf)) for c in scenario.get("cuts", [])
+    )
+    config = SimulationConfig.create(
+        name,
+        material=replace(base, **material_spec),
+        kernel_count=discretization.get("kernel_count"),
+        particle_radius=discretization.get("particle_radius"),
+        order=discretization.get("order"),
+        lloyd_iterations=discretization.get("lloyd_iterations"),
+        seed=discretization.get("seed"),
+        dt=solver.get("dt", SimulationConfig.dt) / solver.get("substeps", 1),
+        gravity=tuple(solver["gravity"]) if "gravity" in solver else None,
+        rayleigh_alpha=solver.get("rayleigh_alpha"),
+        rayleigh_beta=solver.get("rayleigh_beta"),
+        newton_iterations=solver.get("newton_iterations"),
+        floor=scene.get("floor"),
+        default_pins=scene.get("default_pins"),
+        drag_stiffness=solver.get("drag_stiffness"),
+        drag_damping=solver.get("drag_damping"),
+        drag_max_acceleration=solver.get("max_acceleration"),
+        cuts=cuts or None,
+        nerf_solid_resolution=nerf.solid_resolution if nerf is not None else None,
+    )
+    simulation = Simulation(config)
+    for warp in nerf.warps if nerf is not None else []:
+        if NERF_WARPS[warp] not in simulation.render_backends:
+            simulation.add_nerf_render(nerf.field, nerf.grid, name=NERF_WARPS[warp], warp=warp)
+    for i, pin in enumerate(scenario.get("pins", [])):
+        box = pin.get("box")
+        if not (isinstance(box, list) and len(box) == 2 and all(isinstance(c, list) and len(c) == 3 for c in box)):
+            raise ScenarioError(f"'pins[{i}].box' must be [[x0, y0, z0], [x1, y1, z1]] (m), got {box!r}")
+        simulation.pin_region(box[0], box[1])
+    drags = []
+    for i, spec in enumerate(scenario.get("drags", [])):
+        if "point" not in spec or "keys" not in spec:
+            raise ScenarioError(f"'drags[{i}]' needs 'point' (rest position, m) and 'keys' ([[time, [x, y, z]]])")
+        drags.append(spec)
+    if len(drags) > 1:
+        raise ScenarioError("at most one [[drags]] entry: the drag is the mouse; use [[forces]] for further loads")
+    volumes = VolumeHistory(simulation.volume())
+    return ScenarioRun(
+        variant.get("name", "default"),
+        simulation,
+        volumes,
+        drags,
+        list(variant.get("modes", modes if modes is not None else ["mesh"])),
+    )
+
+
+def apply_controls(run: ScenarioRun, scenario: dict, t: float) -> None:
+    """Drag targets and constant forces at time ``t`` (s); the drag grabs its point as a mouse would."""
+    simulation = run.simulation
+    for i, spec in enumerate(run.drags):
+        if t < spec.get("release", math.inf):
+            if not simulation.dragging:
+                simulation.grab(spec["point"])
+            simulation.drag_to(target=keyframe(spec["keys"], t, f"drags[{i}].keys"))
+        elif simulation.dragging:
+            simulation.release()
+    simulation.clear_forces()
+    for i, spec in enumerate(scenario.get("forces", [])):
+        if spec.get("start", 0.0) <= t < spec.get("end", math.inf):
+            if "point" not in spec or "force" not in spec:
+                raise ScenarioError(f"'forces[{i}]' needs 'point' (rest position, m) and 'force' (N)")
+            simulation.add_force(spec["point"], spec["force"])
+
+
+OUTPUT_DEFAULTS = {"frames": True, "mp4": True, "depth": False, "shadow": False, "fps": 30.0, "modes": ["mesh"]}
+"""What a scenario writes unless its ``[outputs]`` table says otherwise."""
+
+
+def scenario_outputs(scenario: dict) -> dict:
+    """The ``[outputs]`` table over :data:`OUTPUT_DEFAULTS`."""
+    return {**OUTPUT_DEFAULTS, **scenario.get("outputs", {})}
+
+
+def frame_count(scenario: dict) -> tuple[int, int]:
+    """``(frames, substeps)`` of the ``[solver]`` table: frames after the first, solver steps per frame."""
+    solver = scenario.get("solver", {})
+    frames, substeps = solver.get("frames", 30), solver.get("substeps", 1)
+    if frames < 1 or substeps < 1:
+        raise ScenarioError("'solver.frames' and 'solver.substeps' must be >= 1")
+    return frames, substeps
+
+
+def build_runs(scenario: dict, nerf: ScenarioNerf | None) -> list[ScenarioRun]:
+    """One run per variant (one ``default`` without ``[[variants]]``), each checked to have its render modes."""
+    modes = scenario_outputs(scenario)["modes"]
+    runs = [build_run(scenario, variant, nerf, modes) for variant in scenario.get("variants") or [{"name": "default"}]]
+    for run in runs:
+        for mode in run.modes:
+            if mode not in run.simulation.render_backends:
+                raise ScenarioError(
+                    f"render mode {mode!r} of variant {run.name!r} is not available; available: "
+                    f"{', '.join(run.simulation.render_backends)} (a [nerf] table adds "
+                    f"{', '.join(NERF_WARPS.values())})"
+                )
+    return runs
+
+
+def advance(run: ScenarioRun, scenario: dict, t: float, substeps: int) -> list[float]:
+    """Step ``run`` from the previous frame to the frame at ``t`` (s): ``substeps`` steps, each under the controls
+    and colliders of its own time; returns each step's wall-clock seconds."""
+    simulation = run.simulation
+    dt = simulation.config.dt
+    seconds = []
+    for sub in range(substeps):
+        ts = t - substeps * dt + sub * dt
+        apply_controls(run, scenario, ts)
+        start = time.perf_counter()
+        simulation.step(1, colliders=scenario_colliders(scenario, ts, simulation.config.floor))
+        seconds.append(time.perf_counter() - start)
+    return seconds
+
+
+def sample_volumes(run: ScenarioRun, samples: list[dict], t: float) -> float:
+    """Record the ``[[volume_samples]]`` due by ``t`` (s); returns the body's volume relative to rest."""
+    volume = run.simulation.volume()
+    while samples and len(run.volumes.labels) < len(samples) and t + 1e-9 >= samples[len(run.volumes.labels)]["time"]:
+        run.volumes.add(samples[len(run.volumes.labels)]["label"], volume)
+    return volume / run.volumes.rest_volume
+
+
+def merged_breakdown(runs: list[ScenarioRun]) -> TimeBreakdown:
+    """The time breakdown of every run together."""
+    breakdown = TimeBreakdown()
+    for run in runs:
+        for key, value in run.simulation.breakdown.seconds.items():
+            breakdown.seconds[key] = breakdown.seconds.get(key, 0.0) + value
+        breakdown.steps += run.simulation.breakdown.steps
+        breakdown.newton_iterations += run.simulation.breakdown.newton_iterations
+    return breakdown
+
+
+def run_metrics(run: ScenarioRun, step_seconds: list[float]) -> dict:
+    """A run's summary, median step time, volumes and largest displacement (m)."""
+    simulation = run.simulation
+    displacement = simulation.particle_positions() - simulation.model.position.float().cpu()
+    return {
+        "summary": simulation.summary(),
+        "step_seconds_median": float(np.median(step_seconds)) if step_seconds else None,
+        "volume": {"labels": run.volumes.labels, "relative": run.volumes.relative().tolist()},
+        "final_relative_volume": simulation.volume() / run.volumes.rest_volume,
+        "final_max_displacement_m": float(displacement.norm(dim=1).max()),
+    }

@@ -1,0 +1,161 @@
+"""pienerf.viewer: the loop picks and drags on clicks, the viser server survives malformed messages and
+disconnects, and the NeRF render mode serves each client a warped-NeRF image of its own view, coarse while moving and
+refined when still."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import socket
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from pienerf.viewer import build_app
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def app(device):
+    app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
+    yield app
+    app.viewer.close()
+
+
+def test_click_picks_then_drags_and_bad_clicks_are_reported(app):
+    sim = app.simulation
+    centre = sim.particle_positions()[int(sim.model.position[:, 1].argmax())].double()
+    origin = centre + torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)
+    app.submit("click", lambda: app.click(origin, torch.tensor([0.0, 0.0, -1.0])))
+    app.tick()
+    drag = sim.interaction.drag
+    assert drag.dragging
+    app.submit("click", lambda: app.click(origin + torch.tensor([0.3, 0.0, 0.0]), torch.tensor([0.0, 0.0, -1.0])))
+    app.submit("click", lambda: app.click((math.nan, 0.0, 0.0), (0.0, 0.0, -1.0)))
+    app.submit("click", lambda: app.click("not a ray", None))
+    start = drag.position(sim.state.q).clone()
+    for _ in range(3):
+        app.tick()
+    assert float(drag.target[0] - origin[0]) == pytest.approx(0.3, abs=1e-6)
+    assert float(drag.position(sim.state.q)[0] - start[0]) > 1e-3  # the spring pulls toward +x
+    assert len(app.errors) == 2 and all("click failed" in e for e in app.errors)
+    assert "must be 3 finite numbers" in app.errors[0]
+    # The viewer's own handler drops a malformed event before it reaches the loop.
+    app.viewer._on_click(SimpleNamespace(ray_origin=(1.0, 2.0), ray_direction=(0.0, 0.0, -1.0)))
+    assert app.commands.empty() and "ignored a malformed click" in app.viewer.message.content
+
+
+def test_server_survives_malformed_messages_and_disconnects(app):
+    import msgspec
+    import viser
+    import websockets
+    from viser._messages import ScenePointerMessage
+
+    uri = f"ws://127.0.0.1:{app.viewer.port}"
+    protocols = [f"viser-v{viser.__version__}"]
+    click = ScenePointerMessage(
+        event_type="click",
+        ray_origin=(math.nan, 0.0, 0.0),
+        ray_direction=(0.0, 0.0, -1.0),
+        screen_pos=((0.5, 0.5),),
+        modifier=None,
+    )
+
+    async def exercise() -> tuple[bool, bool]:
+        async with websockets.connect(uri, subprotocols=protocols) as socket_:
+            await socket_.send(b"\xc1 not msgpack")
+            try:
+                while True:
+                    await asyncio.wait_for(socket_.recv(), 20.0)
+            except websockets.ConnectionClosed:
+                dropped = True
+        async with websockets.connect(uri, subprotocols=protocols) as socket_:
+            served = isinstance(await asyncio.wait_for(socket_.recv(), 20.0), bytes)
+            await socket_.send(msgspec.msgpack.encode(click.as_serializable_dict()))
+            await socket_.send(b"\x81\xa4type\xa5Bogus")  # valid msgpack, unknown message type
+        return dropped, served  # leaving the block disconnects the client
+
+    dropped, served = asyncio.run(exercise())
+    assert dropped and served
+    before = app.simulation.time
+    app.tick()
+    assert app.simulation.time > before  # the loop goes on
+
+    async def reconnect() -> bool:
+        async with websockets.connect(uri, subprotocols=protocols) as socket_:
+            return isinstance(await asyncio.wait_for(socket_.recv(), 20.0), bytes)
+
+    assert asyncio.run(reconnect())  # still serving new clients
+
+
+def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device, tmp_path):
+    import msgspec
+    import viser
+    import websockets
+    from viser._messages import ViewerCameraMessage
+
+    app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True, cache_dir=str(tmp_path))
+    try:
+        sim = app.simulation
+        assert app.render_mode == "mesh" and "nerf" not in sim.render_backends
+        app.submit("render mode", lambda: app.viewer._set_render_mode("nerf"))
+        app.paused = True
+        app.tick()
+        assert app.render_mode == "nerf" and "nerf" in sim.render_backends and not app.errors
+        assert not app.viewer.mesh.visible and not app.viewer.ground.visible
+        assert app.viewer.nerf_renders == [], "no client, nothing rendered"
+
+        centre = sim.centre.double().tolist()
+        camera = ViewerCameraMessage(
+            wxyz=(0.0, 1.0, 0.0, 0.0),
+            position=(centre[0], centre[1], centre[2] + 2.6),
+            fov=math.radians(40.0),
+            near=0.01,
+            far=100.0,
+            image_height=600,
+            image_width=800,
+            look_at=tuple(centre),
+            up_direction=(0.0, 1.0, 0.0),
+        )
+        uri, protocols = f"ws://127.0.0.1:{app.viewer.port}", [f"viser-v{viser.__version__}"]
+
+        async def look_and_render() -> None:
+            async with websockets.connect(uri, subprotocols=protocols) as socket_:
+                await asyncio.wait_for(socket_.recv(), 20.0)
+                await socket_.send(msgspec.msgpack.encode(camera.as_serializable_dict()))
+                for _ in range(100):
+                    clients = app.viewer.server.get_clients().values()
+                    if any(c.camera.update_timestamp > 0 for c in clients):
+                        break
+                    await asyncio.sleep(0.05)
+                # The server's connect handler also moves the camera, at a moment of its own: tick until two ticks
+                # in a row render nothing.
+                idle = 0
+                for _ in range(10):
+                    count = len(app.viewer.nerf_renders)
+                    app.tick()
+                    idle = idle + 1 if len(app.viewer.nerf_renders) == count else 0
+                    if idle == 2:
+                        break
+                    await asyncio.sleep(0.1)
+
+        asyncio.run(look_and_render())
+        renders = app.viewer.nerf_renders
+        assert renders[-1] == 1 and set(renders[:-1]) == {4}, f"coarse, then refined once, then nothing: {renders}"
+        image = app.viewer.last_nerf_image
+        assert image.shape == (app.viewer.nerf_height, round(app.viewer.nerf_height * 800 / 600), 3)
+        middle = image[image.shape[0] // 3 : 2 * image.shape[0] // 3, image.shape[1] // 3 : 2 * image.shape[1] // 3]
+        assert (np.abs(middle.astype(int) - 255).sum(-1) > 60).mean() > 0.05, "the plant is in the middle"
+
+        app.submit("render mode", lambda: app.viewer._set_render_mode("mesh"))
+        app.tick()
+        assert app.render_mode == "mesh" and app.viewer.mesh.visible and app.viewer.ground.visible
+    finally:
+        app.viewer.close()
