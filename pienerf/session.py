@@ -656,3 +656,36 @@ class Simulation:
             "particle_radius_m": self.particle_radius,
             **self.model.summary(),
         }
+
+    # -- verbs the viewers use (they never reach into :attr:`interaction`) -------------------------
+
+    def grab(self, point) -> None:
+        """Grab the material point ``point [3]`` (m, rest space) directly, as a scripted drag does."""
+        self.interaction.drag.grab(point, self.state.q)
+
+    @property
+    def dragging(self) -> bool:
+        """Whether a point is picked (a drag is on)."""
+        return self.interaction.drag.dragging
+
+    @property
+    def drag_target(self) -> torch.Tensor | None:
+        """``[3]`` the drag target (m), or ``None`` when nothing is picked."""
+        return self.interaction.drag.target
+
+    def pin_picked(self) -> None:
+        """Pin the region around the picked point where it is now; releases the drag."""
+        self.interaction.pin_picked(self.state.q)
+
+    def push_picked(self, force=None) -> None:
+        """A constant force ``force [3]`` (N) at the picked point, by default half the body's weight along -z;
+        releases the drag."""
+        if force is None:
+            weight = self.material.density * float(self.model.volume.sum()) * 9.81
+            force = (0.0, 0.0, -0.5 * weight)
+        self.interaction.push_picked(force)
+
+    @property
+    def material_models(self) -> tuple[str, ...]:
+        """Names of the material models the solver knows (for menus)."""
+        return tuple(MATERIAL_MODELS)
