@@ -47,12 +47,9 @@ import numpy as np
 import torch
 
 from kernels import backend
+from pienerf.viewer.loop import RENDER_MODES, RefinementSchedule, load_nerf
 
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
-
-RENDER_MODES = ("mesh", "particles", "nerf")
-"""What the viewer can show: the browser's mesh, the browser's particles, or the server's warped-NeRF image."""
-
 
 def _smoke_fit():
     """A NeRF fit of a few seconds for ``--smoke`` (16 views of 32², 60 steps, a small hash grid)."""
@@ -70,27 +67,6 @@ def _smoke_fit():
         samples_per_diagonal=128,
     )
     return NerfFit(ngp=ngp, train=TrainConfig(steps=60, batch_rays=512, grid_warmup_steps=16), views=16, resolution=32)
-
-
-def load_nerf(simulation, checkpoint: str | None = None, fit=None, cache_dir: str | None = None, progress=None):
-    """Give ``simulation`` its ``"nerf"`` render mode: a given checkpoint, else the NeRF of its embedded scene
-    (trained on the scene's rendered views, or loaded from the cache); returns the render backend."""
-    from pienerf.nerf_backend import NerfFit, scene_nerf
-    from pienerf.scenes import SCENES
-    from pienerf.train import load_checkpoint
-
-    if "nerf" in simulation.render_backends:
-        return simulation.render_backends["nerf"]
-    if checkpoint is not None:
-        trained = load_checkpoint(checkpoint)
-    elif simulation.config.scene in SCENES:
-        trained = scene_nerf(simulation.config.scene, fit or NerfFit(), cache_dir, progress)
-    else:
-        raise ValueError(
-            f"no NeRF for the mesh scene {simulation.config.scene!r}: pass --nerf-checkpoint PATH "
-            "(trained in the mesh's coordinates) or use an embedded scene"
-        )
-    return simulation.add_nerf_render(trained.field, trained.grid)
 
 
 def viser_cameras(position, wxyz, fov: float, aspect: float, height: int):
@@ -120,43 +96,6 @@ def viser_cameras(position, wxyz, fov: float, aspect: float, height: int):
         width,
         height,
     )
-
-
-class RefinementSchedule:
-    """The resolution a preview is rendered at: coarse while the body or the camera moves, full once still.
-
-    Args:
-        moving: downscale while things move.
-        still: downscale of the refined image.
-        tolerance: generalized coordinates that changed less than this (m) since the last render count as still.
-    """
-
-    def __init__(self, moving: int = 4, still: int = 1, tolerance: float = 1e-4):
-        self.moving, self.still, self.tolerance = moving, still, tolerance
-        self._q: torch.Tensor | None = None
-        self._camera = None
-        self._level: int | None = None
-
-    def next(self, q: torch.Tensor, camera) -> int | None:
-        """The downscale to render at now, or ``None`` when the shown image is already the refined one.
-
-        Args:
-            q: ``[nT, 3]`` the body's state.
-            camera: any comparable description of the view (changes when the camera moves).
-        """
-        moved = (
-            self._q is None
-            or self._q.shape != q.shape
-            or camera != self._camera
-            or float((q - self._q).abs().max()) > self.tolerance
-        )
-        if moved:
-            self._q, self._camera, self._level = q.detach().clone(), camera, self.moving
-            return self.moving
-        if self._level != self.still:
-            self._level = self.still
-            return self.still
-        return None
 
 
 def _vector(value, what: str) -> np.ndarray:
