@@ -1,17 +1,18 @@
 """Interactive drag-and-force viewer of a Q-GMLS body (PIE-NeRF Fig. 1, 5).
 
     python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|PATH] [--device cpu|cuda]
-                        [--host 127.0.0.1] [--port 8080] [--viewer viser|meshcat] [--smoke]
+                        [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
 
-``viser`` (default) serves a page: the deformed scene mesh (updated every frame), the particles and the
-integrator points as toggles, and a panel with the material (Young's modulus, Poisson ratio, density, model),
-damping, gravity, the kernel count (re-sampling shows progress), reset / pin / push / cut / release buttons, the
-frame rate and the time breakdown. Drag the body with the mouse: the press picks a material point and the
-pointer, on the camera-aligned plane through it, is the drag target until release. A click picks too; a further
-click moves the target onto that ray at the picked depth, and the gizmo at the target moves it in 3-D. The spring of
-:class:`pienerf.picking.DragController` pulls the body. ``meshcat`` is display-only (meshcat cannot send input
-back): it streams the simulation under a scripted sweeping drag. ``--smoke`` starts the viewer, runs a few steps
+``meshcat`` (default) serves meshcat's own three.js client under a page of the project
+(:class:`pienerf.viewer.meshcat_viewer.MeshcatViewer`): the deformed scene mesh updated every frame, a panel with the
+material (Young's modulus, Poisson ratio, density, model), damping, gravity, the kernel count (re-sampling shows
+progress), pin / push / cut / release / reset buttons, the render mode, the frame rate, the time breakdown and the
+last message. Press on the body and drag: the press picks a material point and the pointer's ray, at the picked
+depth, is the drag target until release; a click (no move) keeps the point picked for pin / push / cut. ``viser``
+serves the same panel through viser, with the particles and the integrator points as toggles; a click picks, a
+further click moves the target onto that ray at the picked depth, and a gizmo at the target moves it in 3-D. The
+spring of :class:`pienerf.picking.DragController` pulls the body. ``--smoke`` starts the viewer, runs a few steps
 headless and exits 0.
 
 ``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
@@ -25,7 +26,7 @@ cached as a checkpoint under the scene cache (``--cache-dir``, default ``$PIE_CA
 the scene's coordinates). The default stays ``mesh``: on this project's 2-core CPU the plant's NeRF (48 views of
 64², 1000 steps of 2048 rays; 27.4 dB on held-out views) took 91 s to fit, over the minute a start may take; a
 later start loads it in about a second. A 320 × 240 view then took 0.4 s to render and its 80 × 60 preview
-0.06–0.09 s. In NeRF mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
+0.06–0.09 s. In viser's NeRF mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 Viewer events become commands queued to the simulation loop, which runs them between steps; a command that fails
 (a malformed message, a bad value) is reported in the panel and the loop goes on, and a client that disconnects
@@ -48,8 +49,10 @@ import torch
 
 from kernels import backend
 from pienerf.viewer.loop import RENDER_MODES, RefinementSchedule, load_nerf
+from pienerf.viewer.meshcat_viewer import MeshcatViewer
 
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
+
 
 def _smoke_fit():
     """A NeRF fit of a few seconds for ``--smoke`` (16 views of 32², 60 steps, a small hash grid)."""
@@ -483,47 +486,6 @@ class ViserViewer:
         self.server.stop()
 
 
-class MeshcatViewer:
-    """Display-only viewer through meshcat: the deformed mesh streamed every frame."""
-
-    def __init__(self, zmq_url: str | None = None):
-        import meshcat
-
-        self.vis = meshcat.Visualizer(zmq_url=zmq_url)
-        self.url = self.vis.url()
-
-    def attach(self, app: DemoApp) -> None:
-        self.app = app
-
-    def update(self, app: DemoApp) -> None:
-        import meshcat.geometry as g
-
-        sim = app.simulation
-        vertices = sim.deformed_mesh_vertices().numpy()
-        colors = sim.mesh_colors.numpy()
-        geometry = g.TriangularMeshGeometry(vertices, sim.mesh_faces.numpy(), color=colors)
-        self.vis["body"].set_object(geometry, g.MeshLambertMaterial(vertexColors=True))
-
-    def report(self, message: str) -> None:
-        print(message, file=sys.stderr)
-
-    def close(self) -> None:
-        self.vis.delete()
-
-
-def sweeping_drag(simulation, amplitude: float = 0.15, period: float = 2.0) -> Callable[[float], torch.Tensor]:
-    """A scripted mouse: grab the particle highest above the pins and sweep it sideways, sinusoidally (m, s)."""
-    position = simulation.model.position
-    top = int(position[:, 1].argmax())
-    simulation.interaction.drag.grab(position[top], simulation.state.q)
-    rest = position[top].double().cpu()
-
-    def target(t: float) -> torch.Tensor:
-        return rest + torch.tensor([amplitude * math.sin(2.0 * math.pi * t / period), 0.0, 0.0], dtype=torch.float64)
-
-    return target
-
-
 def build_app(
     scene: str,
     viewer_name: str,
@@ -544,20 +506,12 @@ def build_app(
 
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
-    if viewer_name != "viser" and render != "mesh":
-        raise ValueError(f"--render {render} needs the viser viewer; meshcat shows the mesh only")
     simulation = Simulation(SimulationConfig(scene=scene, **(SMOKE if smoke else {})), progress)
     nerf_options = {"checkpoint": nerf_checkpoint, "fit": _smoke_fit() if smoke else None, "cache_dir": cache_dir}
     if render == "nerf":
         load_nerf(simulation, progress=progress, **nerf_options)
-    if viewer_name == "viser":
-        viewer = ViserViewer(host, port)
-        app = DemoApp(simulation, viewer, render, nerf_options)
-    else:
-        viewer = MeshcatViewer()
-        app = DemoApp(simulation, viewer, render, nerf_options)
-        app.scripted_drag = sweeping_drag(simulation)
-    return app
+    viewer = ViserViewer(host, port) if viewer_name == "viser" else MeshcatViewer(host, port)
+    return DemoApp(simulation, viewer, render, nerf_options)
 
 
 class _TerminalProgress:
@@ -590,7 +544,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8080)
-    parser.add_argument("--viewer", choices=("viser", "meshcat"), default="viser")
+    parser.add_argument("--viewer", choices=("meshcat", "viser"), default="meshcat")
     parser.add_argument("--smoke", action="store_true", help="start, run a few steps headless, exit")
     parser.add_argument(
         "--render",
