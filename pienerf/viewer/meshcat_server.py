@@ -159,6 +159,7 @@ class MeshcatServer:
             "/": (_read_web_file("index.html"), "text/html; charset=utf-8"),
             "/pienerf.js": (_read_web_file("pienerf.js"), "text/javascript; charset=utf-8"),
             "/meshcat/main.min.js": (_meshcat_bundle(), "text/javascript; charset=utf-8"),
+            "/favicon.ico": (b"", "image/x-icon"),
         }
         routes = [
             (path, _Guarded, {"server": self, "body": body, "content_type": kind})
