@@ -173,7 +173,7 @@ class MeshcatViewer:
         # rotates it into) in front of the body, and the orbit target (set by the script) on the body's centre.
         centre = sim.centre.double().numpy()
         send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
-        position = (centre + np.array([0.0, 0.3, 2.6])).tolist()
+        position = (centre + np.array([0.0, 0.25, 1.9])).tolist()  # meshcat's camera sees 75° vertically
         send(
             SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
         )
