@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import math
+import time
 
 import numpy as np
 import pytest
 import torch
+from tornado.httpclient import HTTPRequest
+from tornado.websocket import websocket_connect
 
 from apps import demo
 from pienerf.viewer.meshcat_viewer import Y_UP_TO_Z_UP, page_cameras
@@ -50,11 +55,28 @@ def test_press_drag_release(app):
 
 def test_a_tab_closing_mid_drag_releases_it(app):
     origin, direction = _ray_at_centre(app)
-    _send(app, type="pick", origin=origin, direction=direction)
-    assert app.simulation.dragging
-    app.viewer._client_closed(CLIENT)
+    port = app.viewer.port
+
+    async def press_then_close() -> None:
+        request = HTTPRequest(f"ws://127.0.0.1:{port}/ws", headers={"Origin": f"http://127.0.0.1:{port}"})
+        socket = await websocket_connect(request)
+        socket.write_message(json.dumps({"type": "pick", "origin": origin, "direction": direction}))
+        assert await _after(lambda: not app.commands.empty())
+        app.run_commands()
+        assert app.simulation.dragging
+        socket.close()
+        assert await _after(lambda: not app.commands.empty()), "closing the tab queued nothing"
+
+    asyncio.run(press_then_close())
     app.run_commands()
     assert not app.simulation.dragging
+
+
+async def _after(condition, seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline and not condition():
+        await asyncio.sleep(0.01)
+    return condition()
 
 
 def test_controls_change_the_material(app):
