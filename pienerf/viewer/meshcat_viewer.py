@@ -4,22 +4,24 @@ The scene goes to meshcat's three.js client as meshcat commands under one root n
 scene's y-up coordinates into meshcat's z-up world (a rotation of +90° about x); the page's script sends pointer
 rays and its camera back in the scene's coordinates. Every frame sends only vertex buffers (the script's
 ``set_vertices``), the drag marker's transform and a status line; the scene and the controls are built once.
+meshcat's own commands offer no cheaper path: its ``set_property`` assigns fields of the scene node's object and
+cannot reach a geometry's attribute buffer, and a ``set_object`` per frame would parse and rebuild the geometry,
+its material and its folder of meshcat's scene panel.
 
 Page messages (JSON objects; anything else is dropped and counted by :class:`MeshcatServer`):
 
-================================  ============================================================================
-``{"type": "pick", "origin", "direction"}``  ray (m, scene axes) under a press on the body: pick, start a drag
-``{"type": "drag", "origin", "direction"}``  the pointer's ray while pressed: move the drag target along it
-``{"type": "release"}``                      let go of the picked point
-``{"type": "pin"|"push"|"cut"|"reset"}``     the buttons: pin / constant force at / cut through the picked point
-``{"type": "set", "name", "value"}``         a control: young_modulus (Pa), poisson_ratio, density (kg/m³),
-                                             damping (1/s), gravity (m/s², magnitude along -y), model,
-                                             render_mode
-``{"type": "resample", "kernel_count"}``     re-discretise with that many kernels (progress in the page)
-``{"type": "camera", "matrix", "fov", "aspect"}``  the page's camera: camera-to-world ``[16]`` (column-major,
-                                             scene axes, OpenGL camera axes), vertical field of view (deg),
-                                             width / height; the NeRF mode renders from it
-================================  ============================================================================
+- ``{"type": "pick", "origin", "direction"}``: the ray (m, scene axes) under a press on the body; picks a point
+  and starts a drag.
+- ``{"type": "drag", "origin", "direction"}``: the pointer's ray while pressed; moves the drag target along it.
+- ``{"type": "release"}``: let go of the picked point.
+- ``{"type": "pin" | "push" | "cut" | "reset"}``: the buttons; pin / constant force at / cut through the picked
+  point, back to rest.
+- ``{"type": "set", "name", "value"}``: a control; ``young_modulus`` (Pa), ``poisson_ratio``, ``density``
+  (kg/m³), ``damping`` (1/s), ``gravity`` (m/s², its magnitude along -y), ``model``, ``render_mode``.
+- ``{"type": "resample", "kernel_count"}``: re-discretise with that many kernels (progress in the page).
+- ``{"type": "camera", "matrix", "fov", "aspect"}``: the page's camera; camera-to-world ``[16]`` (column-major,
+  scene axes, OpenGL camera axes), vertical field of view (degrees), width over height. The NeRF mode renders
+  from it.
 """
 
 from __future__ import annotations

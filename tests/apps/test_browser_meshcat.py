@@ -70,7 +70,8 @@ def _rates(page, app, label: str) -> None:
     s = _stats(page)
     print(
         f"\nmeshcat page, {label}: {s['rafPerSecond']:.0f} animation frames/s, {s['rendersPerSecond']:.0f} renders/s, "
-        f"{s['updatesPerSecond']:.0f} body updates/s, {s['nerfImages']} NeRF images so far"
+        f"{s['updatesPerSecond']:.0f} body updates/s ({s['updateMilliseconds']:.2f} ms each), "
+        f"{s['nerfImages']} NeRF images so far"
     )
 
 

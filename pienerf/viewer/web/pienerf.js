@@ -11,7 +11,7 @@
   const element = (id) => document.getElementById(id);
   const stats = {
     frames: 0, rafPerSecond: 0, renders: 0, rendersPerSecond: 0, updates: 0, updatesPerSecond: 0,
-    nerfImages: 0, messages: 0, mode: null, controls: null, lastMessage: "", open: false,
+    updateMilliseconds: 0, nerfImages: 0, messages: 0, mode: null, controls: null, lastMessage: "", open: false,
   };
   window.pienerf = { viewer, stats };
 
@@ -48,6 +48,7 @@
   }
 
   function setVertices(path, values) {
+    const start = performance.now();
     const object = objectAt(path);
     const geometry = object.geometry;
     const position = geometry && geometry.attributes ? geometry.attributes.position : undefined;
@@ -58,6 +59,7 @@
     geometry.boundingSphere = null; // picking recomputes them
     geometry.boundingBox = null;
     stats.updates += 1;
+    stats.updateMilliseconds += (performance.now() - start - stats.updateMilliseconds) / stats.updates; // mean
     viewer.set_dirty();
   }
 
