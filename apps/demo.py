@@ -1,17 +1,18 @@
 """Interactive drag-and-force viewer of a Q-GMLS body (PIE-NeRF Fig. 1, 5).
 
     python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|PATH] [--device cpu|cuda]
-                        [--host 127.0.0.1] [--port 8080] [--viewer viser|meshcat] [--smoke]
+                        [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
 
-``viser`` (default) serves a page: the deformed scene mesh (updated every frame), the particles and the
-integrator points as toggles, and a panel with the material (Young's modulus, Poisson ratio, density, model),
-damping, gravity, the kernel count (re-sampling shows progress), reset / pin / push / cut / release buttons, the
-frame rate and the time breakdown. Drag the body with the mouse: the press picks a material point and the
-pointer, on the camera-aligned plane through it, is the drag target until release. A click picks too; a further
-click moves the target onto that ray at the picked depth, and the gizmo at the target moves it in 3-D. The spring of
-:class:`pienerf.picking.DragController` pulls the body. ``meshcat`` is display-only (meshcat cannot send input
-back): it streams the simulation under a scripted sweeping drag. ``--smoke`` starts the viewer, runs a few steps
+``meshcat`` (default) serves meshcat's own three.js client under a page of the project
+(:class:`pienerf.viewer.meshcat_viewer.MeshcatViewer`): the deformed scene mesh updated every frame, a panel with the
+material (Young's modulus, Poisson ratio, density, model), damping, gravity, the kernel count (re-sampling shows
+progress), pin / push / cut / release / reset buttons, the render mode, the frame rate, the time breakdown and the
+last message. Press on the body and drag: the press picks a material point and the pointer's ray, at the picked
+depth, is the drag target until release; a click (no move) keeps the point picked for pin / push / cut. ``viser``
+serves the same panel through viser, with the particles and the integrator points as toggles; a click picks, a
+further click moves the target onto that ray at the picked depth, and a gizmo at the target moves it in 3-D. The
+spring of :class:`pienerf.picking.DragController` pulls the body. ``--smoke`` starts the viewer, runs a few steps
 headless and exits 0.
 
 ``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
@@ -23,8 +24,8 @@ first time, with progress in the terminal (or in the panel when switched on ther
 cached as a checkpoint under the scene cache (``--cache-dir``, default ``$PIE_CACHE_DIR`` or
 ``~/.cache/pie-physavatar``), so later starts load it; ``--nerf-checkpoint`` loads a given one instead (trained in
 the scene's coordinates). The default stays ``mesh``: on a CPU the first fit takes longer than a start may take
-(figures in ``docs/benchmarks.md``); later starts load the cached checkpoint. In NeRF mode the body is picked by
-clicking (the mouse-drag handle belongs to the hidden mesh).
+(figures in ``docs/benchmarks.md``); later starts load the cached checkpoint. In viser's NeRF mode the body is picked
+by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
@@ -71,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8080)
-    parser.add_argument("--viewer", choices=VIEWERS, default="viser")
+    parser.add_argument("--viewer", choices=VIEWERS, default="meshcat")
     parser.add_argument("--smoke", action="store_true", help="start, run a few steps headless, exit")
     parser.add_argument(
         "--render",

@@ -3,7 +3,8 @@
 * :mod:`pienerf.viewer.loop`: the :class:`~pienerf.viewer.loop.Viewer` protocol and
   :class:`~pienerf.viewer.loop.DemoApp`, the command queue and simulation loop;
 * :mod:`pienerf.viewer.viser_viewer`: the viser front end;
-* :mod:`pienerf.viewer.meshcat_viewer`: a display-only meshcat front end.
+* :mod:`pienerf.viewer.meshcat_viewer` (with :mod:`pienerf.viewer.meshcat_server` and the page in ``web/``): the
+  meshcat front end, the default.
 
 :func:`build_app` puts a scene's simulation behind the chosen front end.
 """
@@ -11,7 +12,7 @@
 from __future__ import annotations
 
 from pienerf.session import Simulation, SimulationConfig
-from pienerf.viewer.loop import RENDER_MODES, DemoApp, load_nerf, smoke_fit, sweeping_drag
+from pienerf.viewer.loop import RENDER_MODES, DemoApp, load_nerf, smoke_fit
 from pienerf.viewer.meshcat_viewer import MeshcatViewer
 from pienerf.viewer.viser_viewer import ViserViewer
 
@@ -20,7 +21,7 @@ __all__ = ["RENDER_MODES", "SMOKE", "VIEWERS", "DemoApp", "build_app"]
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
 """Settings of a smoke run: a body of a few kernels that builds in seconds."""
 
-VIEWERS = ("viser", "meshcat")
+VIEWERS = ("meshcat", "viser")
 """The front ends :func:`build_app` knows."""
 
 
@@ -44,17 +45,9 @@ def build_app(
         raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
-    if viewer_name != "viser" and render != "mesh":
-        raise ValueError(f"--render {render} needs the viser viewer; meshcat shows the mesh only")
     simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
     nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
     if render == "nerf":
         load_nerf(simulation, progress=progress, **nerf_options)
-    if viewer_name == "viser":
-        viewer = ViserViewer(host, port)
-        app = DemoApp(simulation, viewer, render, nerf_options)
-    else:
-        viewer = MeshcatViewer()
-        app = DemoApp(simulation, viewer, render, nerf_options)
-        app.scripted_drag = sweeping_drag(simulation)
-    return app
+    viewer = ViserViewer(host, port) if viewer_name == "viser" else MeshcatViewer(host, port)
+    return DemoApp(simulation, viewer, render, nerf_options)

@@ -8,7 +8,6 @@ message, a bad value) is reported to the viewer and the loop goes on.
 
 from __future__ import annotations
 
-import math
 import queue
 import threading
 import time
@@ -16,7 +15,6 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
-import torch
 
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf import NGPConfig
@@ -26,7 +24,7 @@ from pienerf.scenes import SCENES
 from pienerf.session import Simulation
 from pienerf.train import TrainConfig, load_checkpoint
 
-__all__ = ["RENDER_MODES", "DemoApp", "Viewer", "load_nerf", "smoke_fit", "sweeping_drag", "vector3"]
+__all__ = ["RENDER_MODES", "DemoApp", "Viewer", "load_nerf", "smoke_fit", "vector3"]
 
 RENDER_MODES = ("mesh", "particles", "nerf")
 """What the viewer can show: the browser's mesh, the browser's particles, or the server's warped-NeRF image."""
@@ -110,7 +108,6 @@ class DemoApp:
         self.paused = False
         self.fps = 0.0
         self.errors: list[str] = []
-        self.scripted_drag: Callable[[float], torch.Tensor] | None = None
         viewer.attach(self)
 
     def submit(self, what: str, command: Callable[[], object]) -> None:
@@ -145,8 +142,6 @@ class DemoApp:
         self.run_commands()
         start = time.perf_counter()
         if not self.paused:
-            if self.scripted_drag is not None:
-                self.simulation.drag_to(target=self.scripted_drag(self.simulation.time))
             self.simulation.step()
         self.viewer.update(self)
         elapsed = time.perf_counter() - start
@@ -162,15 +157,3 @@ class DemoApp:
             if steps is None:
                 self.stop.wait(max(0.0, frame_seconds - (time.perf_counter() - start)))
 
-
-def sweeping_drag(simulation, amplitude: float = 0.15, period: float = 2.0) -> Callable[[float], torch.Tensor]:
-    """A scripted mouse: grab the particle highest above the pins and sweep it sideways, sinusoidally (m, s)."""
-    position = simulation.model.position
-    top = int(position[:, 1].argmax())
-    simulation.grab(position[top])
-    rest = position[top].double().cpu()
-
-    def target(t: float) -> torch.Tensor:
-        return rest + torch.tensor([amplitude * math.sin(2.0 * math.pi * t / period), 0.0, 0.0], dtype=torch.float64)
-
-    return target

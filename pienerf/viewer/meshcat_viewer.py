@@ -1,37 +1,436 @@
-"""A display-only front end through meshcat: the deformed mesh streamed every frame."""
+"""The meshcat front end of the interactive demo: translates the page's events into :class:`Simulation` verbs.
+
+The scene goes to meshcat's three.js client as meshcat commands under one root node, ``/pienerf``, that turns the
+scene's y-up coordinates into meshcat's z-up world (a rotation of +90° about x); the page's script sends pointer
+rays and its camera back in the scene's coordinates. Every frame sends only vertex buffers (the script's
+``set_vertices``), the drag marker's transform and a status line; the scene and the controls are built once.
+meshcat's own commands offer no cheaper path: its ``set_property`` assigns fields of the scene node's object and
+cannot reach a geometry's attribute buffer, and a ``set_object`` per frame would parse and rebuild the geometry,
+its material and its folder of meshcat's scene panel.
+
+Page messages (JSON objects; anything else is dropped and counted by :class:`MeshcatServer`):
+
+- ``{"type": "pick", "origin", "direction"}``: the ray (m, scene axes) under a press on the body; picks a point
+  and starts a drag.
+- ``{"type": "drag", "origin", "direction"}``: the pointer's ray while pressed; moves the drag target along it.
+- ``{"type": "release"}``: let go of the picked point.
+- ``{"type": "pin" | "push" | "cut" | "reset"}``: the buttons; pin / constant force at / cut through the picked
+  point, back to rest.
+- ``{"type": "set", "name", "value"}``: a control; ``young_modulus`` (Pa), ``poisson_ratio``, ``density``
+  (kg/m³), ``damping`` (1/s), ``gravity`` (m/s², its magnitude along -y), ``model``, ``render_mode``.
+- ``{"type": "resample", "kernel_count"}``: re-discretise with that many kernels (progress in the page).
+- ``{"type": "camera", "matrix", "fov", "aspect"}``: the page's camera; camera-to-world ``[16]`` (column-major,
+  scene axes, OpenGL camera axes), vertical field of view (degrees), width over height. The NeRF mode renders
+  from it.
+"""
 
 from __future__ import annotations
 
+import base64
+import io
+import math
 import sys
+import threading
 
-from pienerf.viewer.loop import DemoApp
+import meshcat.geometry as g
+import numpy as np
+import torch
+import umsgpack
+from meshcat.commands import SetObject, SetProperty, SetTransform
+from meshcat.path import Path
+from PIL import Image
 
-__all__ = ["MeshcatViewer"]
+from pienerf.data import Cameras
+from pienerf.preview import RefinementSchedule
+from pienerf.viewer.loop import RENDER_MODES, load_nerf
+from pienerf.viewer.meshcat_server import MeshcatServer
+
+__all__ = ["Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
+
+Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+"""``[4, 4]`` transform of the root node: the scene's y-up axes into meshcat's z-up world (+90° about x)."""
+
+_ROOT = ("pienerf",)
+_BODY = Path((*_ROOT, "body"))
+_PARTICLES = Path((*_ROOT, "particles"))
+_TARGET = Path((*_ROOT, "drag_target"))
+_CONTROLS = {  # name -> (lowest, highest) accepted value
+    "young_modulus": (1.0e2, 1.0e9),
+    "poisson_ratio": (0.0, 0.49),
+    "density": (10.0, 2.0e4),
+    "damping": (0.0, 100.0),
+    "gravity": (0.0, 100.0),
+}
+_BUTTONS = ("release", "pin", "push", "cut", "reset")
+_TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
+
+
+def _vector(value, what: str) -> np.ndarray:
+    """A finite 3-vector from a page message, or a ValueError naming the field."""
+    try:
+        array = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} is not a 3-vector: {str(value)[:80]}") from None
+    if array.shape != (3,) or not np.isfinite(array).all():
+        raise ValueError(f"{what} must be 3 finite numbers, got {str(value)[:80]}")
+    return array
+
+
+def _number(value, what: str, lo: float, hi: float) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+        raise ValueError(f"{what} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
+    return float(value)
+
+
+def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
+    """:class:`Cameras` (one view) of the page's camera, ``height`` pixels high.
+
+    Args:
+        matrix: ``[16]`` camera-to-world transform, column-major as three.js stores it, in the scene's axes (m);
+            the camera looks along its -z with y up (OpenGL axes, as :class:`Cameras`).
+        fov: vertical field of view (degrees).
+        aspect: width over height.
+        height: image height (pixels).
+    """
+    try:
+        c2w = np.asarray(matrix, dtype=np.float64).reshape(4, 4).T
+    except (TypeError, ValueError):
+        raise ValueError(f"camera matrix must be 16 numbers, got {str(matrix)[:80]}") from None
+    if not np.isfinite(c2w).all() or not np.allclose(c2w[3], (0.0, 0.0, 0.0, 1.0)):
+        raise ValueError("camera matrix must be a finite rigid transform (last row 0 0 0 1)")
+    if not np.allclose(c2w[:3, :3].T @ c2w[:3, :3], np.eye(3), atol=1e-3):
+        raise ValueError("camera matrix must have an orthonormal rotation (no scale)")
+    fov = _number(fov, "camera fov (deg)", 1.0, 179.0)
+    aspect = _number(aspect, "camera aspect", 0.05, 20.0)
+    height = max(1, int(height))
+    width = max(1, int(round(height * aspect)))
+    focal = torch.tensor([0.5 * height / math.tan(0.5 * math.radians(fov))])
+    return Cameras(
+        torch.tensor(c2w, dtype=torch.float32)[None],
+        focal,
+        focal.clone(),
+        torch.tensor([0.5 * width]),
+        torch.tensor([0.5 * height]),
+        width,
+        height,
+    )
+
+
+def _vertices_command(path: Path, positions: np.ndarray) -> dict:
+    """The project script's ``set_vertices``: a new ``[N, 3]`` float32 position buffer for the geometry at
+    ``path`` (packed as meshcat packs a Float32Array)."""
+    data = np.ascontiguousarray(positions, dtype=np.float32)
+    return {"type": "set_vertices", "path": path.lower(), "positions": umsgpack.Ext(0x17, data.tobytes())}
+
+
+def _si(value: float, unit: str) -> str:
+    """``20000, "Pa"`` -> ``"20 kPa"``."""
+    for factor, prefix in ((1e9, "G"), (1e6, "M"), (1e3, "k"), (1.0, "")):
+        if abs(value) >= factor:
+            return f"{value / factor:.3g} {prefix}{unit}"
+    return f"{value:.3g} {unit}"
 
 
 class MeshcatViewer:
-    """Display-only viewer through meshcat: the deformed mesh streamed every frame."""
+    """The meshcat page of the demo: the deformed body, the controls, pointer drags and the NeRF view.
 
-    def __init__(self, zmq_url: str | None = None):
-        import meshcat  # deferred: the optional meshcat viewer
+    Args:
+        host, port: where the page is served (port 0 picks a free one; see :attr:`port` and :attr:`url`).
+        nerf_height: height in pixels of the NeRF images rendered for each tab (width from its aspect).
+        background: colour behind the NeRF render, RGB in [0, 1].
+    """
 
-        self.vis = meshcat.Visualizer(zmq_url=zmq_url)
-        self.url = self.vis.url()
+    def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
+        self.app = None
+        self.nerf_height = int(nerf_height)
+        self.background = torch.tensor(background, dtype=torch.float32)
+        self._cameras: dict[int, tuple] = {}  # client -> (matrix, fov, aspect) as sent
+        self._schedules: dict[int, RefinementSchedule] = {}
+        self._dragger: int | None = None  # the tab whose press started the drag
+        self._lock = threading.Lock()
+        self._particle_count = -1
+        self._target_shown = False
+        self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
+        self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
+        self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
+        self.port, self.url = self.server.port, self.server.url
 
-    def attach(self, app: DemoApp) -> None:
+    # -- construction ----------------------------------------------------------------------------
+
+    def attach(self, app) -> None:
+        """Build the scene and the controls once (tabs that open later receive them from the server)."""
         self.app = app
-
-    def update(self, app: DemoApp) -> None:
-        import meshcat.geometry as g  # deferred: the optional meshcat viewer
-
         sim = app.simulation
-        vertices = sim.deformed_mesh_vertices().numpy()
-        colors = sim.mesh_colors.numpy()
-        geometry = g.TriangularMeshGeometry(vertices, sim.mesh_faces.numpy(), color=colors)
-        self.vis["body"].set_object(geometry, g.MeshLambertMaterial(vertexColors=True))
+        send = self.server.send
+        send(SetTransform(Y_UP_TO_Z_UP, Path(_ROOT)).lower(), key="root")
+        send(SetProperty("visible", False, Path(("Axes",))).lower(), key="axes")
+        geometry = g.TriangularMeshGeometry(
+            sim.deformed_mesh_vertices().numpy(), sim.mesh_faces.numpy(), color=sim.mesh_colors.numpy()
+        )
+        send(SetObject(geometry, g.MeshLambertMaterial(vertexColors=True), _BODY).lower(), key="body")
+        self._send_particles(sim)
+        marker = g.Sphere(0.25 * sim.particle_radius + 0.01)
+        send(SetObject(marker, g.MeshLambertMaterial(color=0xE03030), _TARGET).lower(), key="target")
+        send(SetProperty("visible", False, _TARGET).lower(), key="target visible")
+        # The camera: meshcat's /Cameras/default frame at the origin, its camera (in the y-up frame meshcat
+        # rotates it into) in front of the body, and the orbit target (set by the script) on the body's centre.
+        centre = sim.centre.double().numpy()
+        send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
+        position = (centre + np.array([0.0, 0.25, 1.9])).tolist()  # meshcat's camera sees 75° vertically
+        send(
+            SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
+        )
+        self.server.send_json({"type": "view", "target": centre.tolist(), "position": position}, key="view")
+        self._send_controls()
+        self._show(app.render_mode)
+        self.report("drag the body with the mouse; click it to pick a point for pin / push / cut")
+
+    def _send_particles(self, sim) -> None:
+        positions = sim.particle_positions().numpy()
+        colors = sim.particle_colors.numpy().astype(np.float32)
+        cloud = g.PointCloud(positions.T, colors.T, size=1.2 * sim.particle_radius)
+        self.server.send(SetObject(cloud, path=_PARTICLES).lower(), key="particles")
+        self.server.forget(f"vertices {_PARTICLES.lower()}")
+        self._particle_count = positions.shape[0]
+        if self.app is not None:
+            self._show(self.app.render_mode)
+
+    def _send_controls(self) -> None:
+        """The controls' ranges and current values, for every tab (again after each change)."""
+        sim, app = self.app.simulation, self.app
+        material = sim.material
+        self.server.send_json(
+            {
+                "type": "controls",
+                "young_modulus": material.young_modulus,
+                "poisson_ratio": material.poisson_ratio,
+                "density": material.density,
+                "damping": sim.config.solver.rayleigh_alpha,
+                "gravity": -sim.config.solver.gravity[1],
+                "model": material.model,
+                "models": list(sim.material_models),
+                "kernel_count": sim.model.basis.kernel_count,
+                "render_mode": app.render_mode,
+                "render_modes": list(RENDER_MODES),
+            },
+            key="controls",
+        )
+
+    def _show(self, mode: str) -> None:
+        """Scene nodes of a render mode: the browser's mesh or particles, or the server's NeRF image."""
+        send = self.server.send
+        send(SetProperty("visible", mode == "mesh", _BODY).lower(), key="body visible")
+        send(SetProperty("visible", mode == "particles", _PARTICLES).lower(), key="particles visible")
+        send(SetProperty("visible", mode != "nerf", Path(("Grid",))).lower(), key="grid visible")
+        send(SetProperty("visible", mode != "nerf", Path(("Background",))).lower(), key="background visible")
+        self.server.send_json({"type": "mode", "mode": mode}, key="mode")
+        with self._lock:
+            self._schedules.clear()
+
+    # -- page events (the server's thread: validate, then queue) --------------------------------
+
+    def on_message(self, client: int, message: dict) -> None:
+        """Translate one page message into a queued command; raises ValueError for a malformed one."""
+        kind = message.get("type")
+        if kind not in _TYPES:
+            raise ValueError(f"unknown message type {str(kind)[:40]!r}; known: {', '.join(_TYPES)}")
+        app, sim = self.app, self.app.simulation
+        if kind == "pick":
+            origin, direction = (
+                _vector(message.get("origin"), "ray origin"),
+                _vector(message.get("direction"), "ray direction"),
+            )
+            self._dragger = client
+            app.submit("pick", lambda: self._pick(origin, direction))
+        elif kind == "drag":
+            origin, direction = (
+                _vector(message.get("origin"), "ray origin"),
+                _vector(message.get("direction"), "ray direction"),
+            )
+            app.submit("drag", lambda: self._drag(origin, direction))
+        elif kind == "camera":
+            view = (message.get("matrix"), message.get("fov"), message.get("aspect"))
+            page_cameras(*view, 1)  # validates
+            with self._lock:
+                self._cameras[client] = (tuple(view[0]), float(view[1]), float(view[2]))
+        elif kind == "set":
+            self._set(message.get("name"), message.get("value"))
+        elif kind == "resample":
+            count = int(_number(message.get("kernel_count"), "kernel count", 4, 4096))
+            app.submit("resample", lambda: self._resample(count))
+        elif kind == "release":
+            app.submit("release", sim.release)
+        elif kind == "pin":
+            app.submit("pin", self._pin)
+        elif kind == "push":
+            app.submit("push", self._push)
+        elif kind == "cut":
+            app.submit("cut", self._cut)
+        else:
+            app.submit("reset", self._reset)
+
+    def _set(self, name, value) -> None:
+        app, sim = self.app, self.app.simulation
+        if name == "model":
+            if value not in sim.material_models:
+                raise ValueError(f"unknown material model {str(value)[:40]!r}; valid: {', '.join(sim.material_models)}")
+            app.submit("material model", lambda: self._set_material(model=value))
+        elif name == "render_mode":
+            if value not in RENDER_MODES:
+                raise ValueError(f"unknown render mode {str(value)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
+            app.submit("render mode", lambda: self._set_render_mode(value))
+        elif name in _CONTROLS:
+            number = _number(value, name, *_CONTROLS[name])
+            changes = {"gravity": (0.0, -number, 0.0)} if name == "gravity" else {name: number}
+            app.submit(name.replace("_", " "), lambda: self._set_material(**changes))
+        else:
+            raise ValueError(f"unknown control {str(name)[:40]!r}; known: model, render_mode, {', '.join(_CONTROLS)}")
+
+    def _client_closed(self, client: int) -> None:
+        with self._lock:
+            self._cameras.pop(client, None)
+            self._schedules.pop(client, None)
+        if self._dragger == client and self.app is not None:  # a tab closing mid-drag lets go
+            self._dragger = None
+            self.app.submit("release (tab closed)", self.app.simulation.release)
+
+    # -- commands (the simulation loop's thread) ------------------------------------------------
+
+    def _pick(self, origin, direction) -> None:
+        hit = self.app.simulation.pick(origin, direction)
+        self.report("picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)")
+
+    def _drag(self, origin, direction) -> None:
+        if self.app.simulation.dragging:
+            self.app.simulation.drag_to(origin, direction)
+
+    def _pin(self) -> None:
+        self.app.simulation.pin_picked()
+        self.report("pinned the picked region")
+
+    def _push(self) -> None:
+        self.app.simulation.push_picked()
+        self.report("constant force on the picked point")
+
+    def _cut(self) -> None:
+        sim = self.app.simulation
+        plane = sim.cut_picked((0.0, 1.0, 0.0), self._progress("cutting"))
+        self._after_rebuild(sim)
+        self.report(f"cut through {np.round(plane.point, 3).tolist()}")
+
+    def _reset(self) -> None:
+        self.app.simulation.reset()
+        self.report("reset to rest")
+
+    def _set_material(self, **changes) -> None:
+        material = self.app.simulation.set_material(**changes)
+        self._send_controls()
+        name, value = next(iter(changes.items()))
+        shown = {"young_modulus": lambda v: _si(v, "Pa"), "gravity": lambda v: f"{-v[1]:.3g} m/s²"}
+        self.report(f"{name.replace('_', ' ')} = {shown.get(name, str)(value)} ({material.model})")
+
+    def _resample(self, kernel_count: int) -> None:
+        sim = self.app.simulation
+        sim.resample(kernel_count, self._progress("resampling"))
+        self._after_rebuild(sim)
+        self.report(f"resampled with {sim.model.basis.kernel_count} kernels")
+
+    def _after_rebuild(self, sim) -> None:
+        self.server.send_json({"type": "progress", "stage": "", "fraction": None}, key="progress")
+        if sim.particle_positions().shape[0] != self._particle_count:
+            self._send_particles(sim)
+        self._send_controls()
+
+    def _progress(self, what: str):
+        def progress(stage: str, fraction: float) -> None:
+            self.server.send_json(
+                {"type": "progress", "stage": f"{what}: {stage}", "fraction": fraction}, key="progress"
+            )
+
+        return progress
+
+    def _set_render_mode(self, mode: str) -> None:
+        """Switch what the page shows; the NeRF is loaded (or trained, with progress in the page) the first time."""
+        app = self.app
+        if mode == "nerf" and "nerf" not in app.simulation.render_backends:
+            try:
+                load_nerf(app.simulation, progress=self._progress("NeRF"), **app.nerf_options)
+            finally:
+                self.server.send_json({"type": "progress", "stage": "", "fraction": None}, key="progress")
+                self._send_controls()
+        app.render_mode = mode
+        self._show(mode)
+        self._send_controls()
+        self.report(f"showing the {mode}")
+
+    # -- per frame -------------------------------------------------------------------------------
+
+    def update(self, app) -> None:
+        """Send this frame: vertex buffers of what is shown, the drag marker, the status; NeRF images."""
+        sim, send = app.simulation, self.server.send
+        if app.render_mode == "mesh":
+            send(
+                _vertices_command(_BODY, sim.deformed_mesh_vertices().numpy()),
+                key=f"vertices {_BODY.lower()}",
+                volatile=True,
+            )
+        elif app.render_mode == "particles":
+            positions = sim.particle_positions().numpy()
+            if positions.shape[0] != self._particle_count:
+                self._send_particles(sim)
+            send(_vertices_command(_PARTICLES, positions), key=f"vertices {_PARTICLES.lower()}", volatile=True)
+        elif "nerf" in sim.render_backends:
+            self._update_nerf(sim)
+        target = sim.drag_target
+        if target is not None:
+            matrix = np.eye(4)
+            matrix[:3, 3] = target.double().cpu().numpy()
+            send(SetTransform(matrix, _TARGET).lower(), key="target transform", volatile=True)
+        if (target is not None) != self._target_shown:
+            self._target_shown = target is not None
+            send(SetProperty("visible", self._target_shown, _TARGET).lower(), key="target visible")
+        report = sim.last_report
+        seconds = sim.time_breakdown()["seconds_per_step"]
+        self.server.send_json(
+            {
+                "type": "status",
+                "text": f"{app.fps:.1f} fps, t = {sim.time:.2f} s, {sim.model.basis.kernel_count} kernels, "
+                f"{report.iterations} Newton iterations",
+                "breakdown": ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items()),
+                "fps": app.fps,
+            },
+            key="status",
+            volatile=True,
+        )
+
+    def _update_nerf(self, sim) -> None:
+        """Render the warped NeRF from every tab's camera: coarse while things move, refined when still."""
+        renderer = sim.render_backends["nerf"]
+        with self._lock:
+            views = dict(self._cameras)
+        for client, view in views.items():
+            with self._lock:
+                schedule = self._schedules.setdefault(client, RefinementSchedule())
+            level = schedule.next(sim.state.q, view)
+            if level is None:
+                continue
+            renderer.downscale = level
+            frame = sim.render(page_cameras(*view, self.nerf_height), 0, "nerf")
+            alpha = frame.rgba[..., 3:]
+            rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
+            image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()
+            buffer = io.BytesIO()
+            Image.fromarray(image).save(buffer, format="JPEG", quality=85)
+            data = "data:image/jpeg;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")
+            self.server.send_json({"type": "nerf", "image": data, "level": level}, to=client)
+            self.nerf_renders.append(level)
+            self.last_nerf_image = image
 
     def report(self, message: str) -> None:
-        print(message, file=sys.stderr)
+        """Show ``message`` in every tab (and on stderr when none is open)."""
+        self.server.send_json({"type": "message", "text": message}, key="message")
+        if not self.server.clients:
+            print(message, file=sys.stderr)
 
     def close(self) -> None:
-        self.vis.delete()
+        self.server.close()

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from pienerf.viewer import build_app
-from tests.pienerf.test_viewer import free_port
+from tests.pienerf.viewer.test_loop import free_port
 
 CHROMIUM = shutil.which("chromium")
 

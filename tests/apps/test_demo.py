@@ -6,7 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.pienerf.test_viewer import free_port
+from tests.pienerf.viewer.test_loop import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 
