@@ -268,6 +268,8 @@ class StepStats:
         contacts: active barrier pairs after the step.
         time: seconds spent per phase (:data:`PHASES`).
         candidate_searches: broad-phase searches of the step (1 unless a sweep left the candidates' reach).
+        line_search_stalled: the line search could not move (CCD bound or backtracking reached zero step), so the
+            step ended where it stood without converging.
     """
 
     newton_iterations: int
@@ -277,6 +279,7 @@ class StepStats:
     contacts: int
     time: dict[str, float] = field(default_factory=dict)
     candidate_searches: int = 1
+    line_search_stalled: bool = False
 
 
 class ClothEnergies(NamedTuple):
@@ -588,6 +591,7 @@ class SolverCloth:
         loop = self._loop
         loop.begin(X, target, ctx, cover, pairs)
         converged = False
+        stalled = False
         iterations = 0
         while iterations < cfg.max_newton_iterations:
             iterations += 1
@@ -629,6 +633,7 @@ class SolverCloth:
                     alpha *= 0.5
                     read = read._replace(trial_energy=loop.trial_energy(alpha, timer))
             if alpha <= 1e-12:
+                stalled = True
                 break
             loop.accept(snap=alpha == 1.0 and not read.reached)  # once reached, the kinematic vertices stay there
 
@@ -638,7 +643,7 @@ class SolverCloth:
         # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
         near = self._sweep_masks(X, torch.zeros_like(X), cover)
         d_body, d_self, contacts = self._min_distances(X, cover.pairs, near)
-        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches)
+        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
 
     # -- parameter sensitivities ------------------------------------------------------------------------------
 
