@@ -78,8 +78,8 @@ def _alternating_strip(nx: int, ny: int, width: float, length: float) -> tuple[t
 def test_flat_strip_with_alternating_diagonals_hangs_and_stretches(device):
     """A flat 0.2 × 0.5 m cotton strip with alternating diagonals, top row fixed, moves under gravity and settles
     at the bar's stretch ``ρ g L² / (2E)`` (between that and ``(1 − ν²)`` of it, where the clamp stops the sideways
-    contraction near the top); its exactly parallel coplanar diagonals, 14.6 mm apart, must not stop the line
-    search (their edge-edge distance once came out 0)."""
+    contraction near the top); its exactly parallel coplanar diagonals, 14.6 mm apart and far from touching, must
+    not stop the line search."""
     width, length = 0.2, 0.5
     x, faces = _alternating_strip(20, 50, width, length)
     top = (x[:, 1] == x[:, 1].max()).nonzero().squeeze(1)

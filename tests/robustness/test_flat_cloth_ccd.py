@@ -1,8 +1,8 @@
 """Edge-edge distance and CCD of flat and coplanar cloth: kernel against the brute-force reference and ipctk.
 
-A flat strip with alternating diagonals holds exactly parallel, coplanar diagonals two cells apart. Their lines
-coincide in no point, yet a parallel test on the cancelling Gram determinant ``a e − b²`` let rounding noise
-through, the line-line type was chosen and its distance (0 for any coplanar lines) stopped every sweep at t = 0.
+A flat strip with alternating diagonals holds exactly parallel, coplanar diagonals 14.6 mm apart. A parallel test
+on the Gram determinant ``a e − b²``, which cancels to rounding noise for parallel lines, lets such pairs through to
+the line-line type, whose distance is 0 for any two coplanar lines: the CCD would then stop every sweep at t = 0.
 """
 
 import numpy as np
