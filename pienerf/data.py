@@ -364,8 +364,8 @@ def _read_premultiplied(path: Path, json_path: Path, downscale: int) -> tuple[tu
                 rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
     except (_TooLargeError, Image.DecompressionBombError) as error:
         raise ValueError(
-            f"{path.name} listed in {json_path.name} is too large ({error}); images may have at most {MAX_IMAGE_PIXELS} "
-            "pixels: downscale it"
+            f"{path.name} listed in {json_path.name} is too large ({error}); images may have at most "
+            f"{MAX_IMAGE_PIXELS} pixels: downscale it"
         ) from error
     except (OSError, SyntaxError, ValueError, EOFError) as error:
         raise ValueError(
