@@ -982,22 +982,47 @@ def _line_line_gram(ea0: Any, ea1: Any, eb0: Any, eb1: Any):
 
 
 @wp.func
+def _line_line_parameters(ea0: Any, ea1: Any, eb0: Any, eb1: Any):
+    """``sin²`` of the angle between the segments' lines and the parameters ``s`` on ``a``, ``t`` on ``b`` of their
+    closest points, all from ``n = da × db`` (``da = ea1 − ea0``, ``db = eb1 − eb0``, ``r = eb0 − ea0``):
+    ``s = (r × db)·n / ‖n‖²``, ``t = (r × da)·n / ‖n‖²``.
+
+    The cross products keep full relative precision as the lines turn parallel, where the Gram form
+    ``a e − b²`` (:func:`_line_line_gram`) cancels to rounding noise of size ``ε a e``: for exactly parallel,
+    coplanar edges that noise passed the parallel test, put ``s, t`` anywhere, and gave the line-line distance 0.
+    ``s`` and ``t`` are only meaningful where ``sin²`` passes the caller's parallel test.
+    """
+    da = ea1 - ea0
+    db = eb1 - eb0
+    r = eb0 - ea0
+    n = wp.cross(da, db)
+    nn = wp.dot(n, n)
+    sin2 = nn / (wp.dot(da, da) * wp.dot(db, db))
+    s = wp.dot(wp.cross(r, db), n) / nn
+    t = wp.dot(wp.cross(r, da), n) / nn
+    return sin2, s, t
+
+
+@wp.func
 def _edge_edge_type(ea0: Any, ea1: Any, eb0: Any, eb1: Any, parallel_tol: Any):
     """Closest features of segments ``a`` and ``b``, minimising ``‖ea0 + s da − eb0 − t db‖²`` over ``[0, 1]²``.
 
     The unconstrained line-line optimum counts when it lies inside the square; otherwise the optimum lies on
     the square's boundary, i.e. one segment's end point against the other segment, and the closest of the four
-    wins. Lines closer to parallel than ``sin² < parallel_tol`` go straight to the boundary, where the
-    line-line parameters lose their precision.
+    wins. Lines closer to parallel than ``sin² ≤ parallel_tol`` (``sin²`` from ``‖da × db‖²``, exact to rounding
+    even for parallel lines) go straight to the boundary: there the boundary minimum is the segments' distance
+    to within ``sin θ`` times their length, and the line-line distance, 0 for any two coplanar lines, would
+    report parallel neighbours of a flat sheet as touching.
     """
     zero = type(parallel_tol)(0.0)
     one = type(parallel_tol)(1.0)
-    a, b, c, e, f = _line_line_gram(ea0, ea1, eb0, eb1)
-    denom = a * e - b * b
+    da = ea1 - ea0
+    db = eb1 - eb0
+    a = wp.dot(da, da)
+    e = wp.dot(db, db)
     kind = -1
-    if denom > parallel_tol * a * e:
-        s = (b * f - c * e) / denom
-        t = (a * f - b * c) / denom
+    if wp.length_sq(wp.cross(da, db)) > parallel_tol * a * e:
+        sin2, s, t = _line_line_parameters(ea0, ea1, eb0, eb1)
         if s > zero and s < one and t > zero and t < one:
             kind = 8
     if kind < 0:

@@ -264,6 +264,8 @@ class StepStats:
         contacts: active barrier pairs after the step.
         time: seconds spent per phase (:data:`PHASES`).
         candidate_searches: broad-phase searches of the step (1 unless a sweep left the candidates' reach).
+        line_search_stalled: the line search could not move (CCD bound or backtracking reached zero step), so the
+            step ended where it stood without converging.
     """
 
     newton_iterations: int
@@ -273,6 +275,7 @@ class StepStats:
     contacts: int
     time: dict[str, float] = field(default_factory=dict)
     candidate_searches: int = 1
+    line_search_stalled: bool = False
 
 
 class ClothEnergies(NamedTuple):
@@ -584,6 +587,7 @@ class SolverCloth:
         loop = self._loop
         loop.begin(X, target, ctx, cover, pairs)
         converged = False
+        stalled = False
         iterations = 0
         while iterations < cfg.max_newton_iterations:
             iterations += 1
@@ -625,6 +629,7 @@ class SolverCloth:
                     alpha *= 0.5
                     read = read._replace(trial_energy=loop.trial_energy(alpha, timer))
             if alpha <= 1e-12:
+                stalled = True
                 break
             loop.accept(snap=alpha == 1.0 and not read.reached)  # once reached, the kinematic vertices stay there
 
@@ -634,7 +639,7 @@ class SolverCloth:
         # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
         near = self._sweep_masks(X, torch.zeros_like(X), cover)
         d_body, d_self, contacts = self._min_distances(X, cover.pairs, near)
-        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches)
+        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
 
     # -- parameter sensitivities ------------------------------------------------------------------------------
 

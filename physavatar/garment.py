@@ -42,6 +42,7 @@ DEFAULT_GARMENT = SHARED_GARMENTS / "skirt1252.obj"
 _PLAUSIBLE_HEIGHT = (0.1, 2.0)  # m, the vertical extent of a garment worn by an adult
 _TYPICAL_HEIGHT = 0.6  # m, the extent "auto" scaling aims for among powers of ten
 _UNIT_NAMES = {-1: "decimetres", -2: "centimetres", -3: "millimetres", 1: "decametres"}
+_MAX_COORDINATE = 1e9  # any unit: a 2 m garment in nanometres stays below it, corrupt floats (1e308) do not
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,16 +93,29 @@ def load_garment(path: str | Path, scale: float | str | None = "auto", weld_tole
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"garment file {path} does not exist; pass the path of an OBJ or PLY mesh")
+    if path.suffix.lower() == ".obj":
+        _check_obj_lines(path)
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces, dtype=np.int64)
     except Exception as error:  # trimesh raises many types for unreadable files
         raise ValueError(f"{path.name}: cannot read a triangle mesh ({error}); export it as OBJ or PLY") from None
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    faces = np.asarray(mesh.faces, dtype=np.int64)
-    if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3:
+    if faces.ndim != 2 or faces.shape[0] == 0 or faces.shape[1] != 3 or vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"{path.name}: no triangles found; a garment must be a triangle mesh")
     if not np.isfinite(vertices).all():
         raise ValueError(f"{path.name}: vertex coordinates hold NaN or inf")
+    outside = np.flatnonzero(((faces < 0) | (faces >= vertices.shape[0])).any(1))
+    if outside.size:
+        raise ValueError(
+            f"{path.name}: {outside.size} faces (e.g. faces {_few(outside)}) name vertices beyond its "
+            f"{vertices.shape[0]}; the file is truncated or its face list is corrupt: export it again"
+        )
+    if np.abs(vertices).max() > _MAX_COORDINATE:
+        raise ValueError(
+            f"{path.name}: coordinates reach {np.abs(vertices).max():.3g}, beyond {_MAX_COORDINATE:g} in any unit "
+            "a garment is modelled in; the file is corrupt or not a garment"
+        )
     notes = []
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     count = vertices.shape[0]
@@ -113,6 +127,47 @@ def load_garment(path: str | Path, scale: float | str | None = "auto", weld_tole
     if note:
         notes.append(note)
     return Garment(torch.from_numpy(vertices), torch.from_numpy(faces), path.stem, tuple(notes))
+
+
+def _check_obj_lines(path: Path) -> None:
+    """Refuse an OBJ whose text, vertex or face lines are malformed, naming the line (trimesh skips or guesses).
+
+    ``v`` lines need three finite numbers; ``f`` lines at least three references whose vertex index is a
+    non-zero integer within the vertices the file defines (negative: counted back from the latest one).
+    """
+    raw = path.read_bytes()
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as error:
+        line = raw.count(b"\n", 0, error.start) + 1
+        raise ValueError(f"{path.name}:{line}: not a text OBJ file (byte {error.start} is not UTF-8)") from None
+    total = sum(1 for line in text.splitlines() if line.split()[:1] == ["v"])
+    seen = 0
+    for number, line in enumerate(text.splitlines(), start=1):
+        tokens = line.split("#", 1)[0].split()
+        if not tokens:
+            continue
+        if "\x00" in line:
+            raise ValueError(f"{path.name}:{number}: not a text OBJ file (it holds NUL bytes)")
+        if tokens[0] == "v":
+            try:
+                values = [float(t) for t in tokens[1:4]]
+            except ValueError:
+                values = []
+            if len(values) != 3 or not all(math.isfinite(v) for v in values):
+                raise ValueError(f"{path.name}:{number}: a vertex needs three finite numbers, got {line.strip()!r}")
+            seen += 1
+        elif tokens[0] == "f":
+            if len(tokens) < 4:
+                raise ValueError(f"{path.name}:{number}: a face needs at least three vertices, got {line.strip()!r}")
+            for ref in tokens[1:]:
+                head = ref.split("/", 1)[0]
+                index = int(head) if head.lstrip("-").isascii() and head.lstrip("-").isdigit() else 0
+                if index == 0 or index > total or index < -seen:
+                    raise ValueError(
+                        f"{path.name}:{number}: face vertex {ref!r} is not an index of the file's {total} vertices "
+                        "(1-based, or negative counting back)"
+                    )
 
 
 def _weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:

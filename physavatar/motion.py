@@ -24,6 +24,7 @@ from physavatar.body import Skeleton, axis_angle_to_matrix
 
 __all__ = [
     "BVH_NAME_MAPS",
+    "MAX_BVH_FRAMES",
     "MOTIONS",
     "REQUIRED_JOINTS",
     "Motion",
@@ -322,12 +323,28 @@ class _BvhJoint:
     end_site: np.ndarray | None = None
 
 
+MAX_BVH_FRAMES = 100_000
+"""Most frames :func:`load_bvh` reads: 55 minutes at 30 fps. The header's count sizes the frame array before the
+frames are read, so a larger claim is refused (split longer captures into clips)."""
+
+
 class _BvhReader:
     """Line-numbered tokens of a BVH file with errors that name the line."""
 
     def __init__(self, path: Path):
         self.path = path
-        self.lines = [line.split() for line in path.read_text().splitlines()]
+        raw = path.read_bytes()
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as error:
+            line = raw.count(b"\n", 0, error.start) + 1
+            raise ValueError(
+                f"{path}:{line}: not a text BVH file (byte {error.start} is not UTF-8); export the motion as BVH text"
+            ) from None
+        if "\x00" in text:
+            line = text.count("\n", 0, text.index("\x00")) + 1
+            raise ValueError(f"{path}:{line}: not a text BVH file (it holds NUL bytes); export the motion as BVH text")
+        self.lines = [line.split() for line in text.splitlines()]
         self.line = 0
 
     def error(self, message: str, line: int | None = None) -> ValueError:
@@ -346,9 +363,13 @@ class _BvhReader:
         if len(tokens) != count:
             raise self.error(f"{what} needs {count} numbers, found {len(tokens)}", self.line - 1)
         try:
-            return np.array([float(x) for x in tokens])
+            values = np.array([float(x) for x in tokens])
         except ValueError:
             raise self.error(f"{what} holds a value that is not a number: {' '.join(tokens)}", self.line - 1) from None
+        if not np.isfinite(values).all():
+            shown = " ".join(t for t, v in zip(tokens, values, strict=True) if not np.isfinite(v))
+            raise self.error(f"{what} holds a value that is not finite ({shown}); fix or drop the frame", self.line - 1)
+        return values
 
 
 def _parse_hierarchy(reader: _BvhReader) -> list[_BvhJoint]:
@@ -374,7 +395,7 @@ def _parse_hierarchy(reader: _BvhReader) -> list[_BvhJoint]:
                 raise reader.error("expected '}' to close End Site", reader.line - 1)
         else:
             tokens = reader.next()
-            if tokens[:1] != ["CHANNELS"] or len(tokens) < 2 or not tokens[1].isdigit():
+            if tokens[:1] != ["CHANNELS"] or len(tokens) < 2 or not _is_count(tokens[1]):
                 raise reader.error(f"expected 'CHANNELS <n> ...' in {name!r}", reader.line - 1)
             channels = tokens[2:]
             if len(channels) != int(tokens[1]) or any(c[1:] not in ("position", "rotation") for c in channels):
@@ -405,15 +426,31 @@ def _parse_motion(reader: _BvhReader, channel_count: int) -> tuple[np.ndarray, f
     if tokens != ["MOTION"]:
         raise reader.error(f"expected MOTION after the HIERARCHY, found {' '.join(tokens)!r}", reader.line - 1)
     tokens = reader.next()
-    if tokens[:1] != ["Frames:"] or len(tokens) != 2 or not tokens[1].isdigit():
+    if tokens[:1] != ["Frames:"] or len(tokens) != 2 or not _is_count(tokens[1]):
         raise reader.error("expected 'Frames: <count>'", reader.line - 1)
     count = int(tokens[1])
+    if count > MAX_BVH_FRAMES:
+        raise reader.error(
+            f"'Frames: {count}' exceeds the {MAX_BVH_FRAMES} frames load_bvh reads (MAX_BVH_FRAMES); split the "
+            "capture into shorter clips",
+            reader.line - 1,
+        )
+    count_line = reader.line - 1
     tokens = reader.next()
     if tokens[:2] != ["Frame", "Time:"] or len(tokens) != 3:
         raise reader.error("expected 'Frame Time: <seconds>'", reader.line - 1)
-    frame_time = float(tokens[2])
-    if count < 1 or not frame_time > 0:
-        raise reader.error("the motion needs at least one frame and a positive frame time", reader.line - 1)
+    try:
+        frame_time = float(tokens[2])
+    except ValueError:
+        raise reader.error(f"'Frame Time: {tokens[2]}' is not a number of seconds", reader.line - 1) from None
+    if count < 1 or not 0 < frame_time < math.inf:
+        raise reader.error("the motion needs at least one frame and a finite, positive frame time", reader.line - 1)
+    if count > len(reader.lines) - reader.line:
+        raise reader.error(
+            f"'Frames: {count}' but only {len(reader.lines) - reader.line} lines follow; the file is truncated or "
+            "the count is wrong",
+            count_line,
+        )
     values = np.empty((count, channel_count))
     for f in range(count):
         tokens = reader.next()
@@ -424,6 +461,11 @@ def _parse_motion(reader: _BvhReader, channel_count: int) -> tuple[np.ndarray, f
             )
         values[f] = reader.floats(tokens, channel_count, f"frame {f}")
     return values, frame_time
+
+
+def _is_count(token: str) -> bool:
+    """Whether ``token`` is a non-negative decimal integer written in ASCII digits."""
+    return token.isascii() and token.isdigit()
 
 
 def _axis_rotation(axis: str, angle: np.ndarray) -> np.ndarray:
@@ -492,9 +534,12 @@ def load_bvh(
         The retargeted motion at the file's frame rate.
 
     Raises:
-        ValueError: a malformed file (the message names the line) or a required joint that is missing.
+        ValueError: a malformed file (the message names the file and line: binary content, a value that is not a
+            finite number, more than :data:`MAX_BVH_FRAMES` frames) or a required joint that is missing.
     """
     path = Path(path)
+    if unit_scale is not None and not (isinstance(unit_scale, (int, float)) and 0 < unit_scale < math.inf):
+        raise ValueError(f"unit_scale must be a finite positive number of metres per file unit, got {unit_scale!r}")
     reader = _BvhReader(path)
     joints = _parse_hierarchy(reader)
     channel_count = sum(len(j.channels) for j in joints)
@@ -529,6 +574,11 @@ def load_bvh(
             + np.linalg.norm(ours_rest[skeleton.index(f"{s}_ankle")] - ours_rest[skeleton.index(f"{s}_knee")])
             for s in ("left", "right")
         )
+        if not theirs > 0:
+            raise ValueError(
+                f"{path}: the legs of its rest pose (OFFSETs from hip to ankle) have zero length, so its units "
+                "cannot be found; pass unit_scale (metres per file unit)"
+            )
         unit_scale = ours / theirs
 
     ours_world = np.zeros((frames, skeleton.num_joints, 3, 3))

@@ -18,6 +18,10 @@ Pixel ``(u, v)`` (column, row, from the top-left corner) has its centre at ``(u 
 the camera centre along ``((u + ½ − cx) / fx, −(v + ½ − cy) / fy, −1)`` in camera axes. With this convention a
 downscale by an integer ``k`` that averages ``k × k`` blocks divides ``fx, fy, cx, cy`` by exactly ``k``.
 
+Image paths must stay inside the json's folder (no absolute paths, no ``..`` out of it) unless the caller passes
+``allow_outside=True``; an image may have at most :data:`MAX_IMAGE_PIXELS` pixels, checked from its header before
+it is decoded.
+
 Splits: ``split="train"`` reads ``transforms_train.json`` (or instant-NGP's single ``transforms.json``);
 ``"val"``/``"test"`` read ``transforms_val.json``/``transforms_test.json`` when present, else hold out every
 ``holdout_every``-th view of the training json (views 0, k, 2k, …). The same views leave the training set with
@@ -28,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -35,10 +40,18 @@ from pathlib import Path
 import numpy as np
 import torch
 
-__all__ = ["Cameras", "NerfDataset", "load_nerf_dataset"]
+__all__ = ["MAX_IMAGE_PIXELS", "Cameras", "NerfDataset", "load_nerf_dataset"]
+
+MAX_IMAGE_PIXELS = 64_000_000
+"""Most pixels (width × height) one dataset image may have: 64 Mpx, 1 GiB as float32 RGBA, eight times a 4K frame.
+Larger images are refused from their header, before decoding (a small compressed file can claim 30000² pixels)."""
 
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+class _TooLargeError(Exception):
+    """An image's header claims more than :data:`MAX_IMAGE_PIXELS` pixels."""
 
 
 @dataclass(frozen=True)
@@ -246,6 +259,7 @@ def load_nerf_dataset(
     max_views: int | None = None,
     holdout_every: int = 8,
     seed: int = 0,
+    allow_outside: bool = False,
 ) -> NerfDataset:
     """Read one split of a NeRF-synthetic / instant-NGP dataset.
 
@@ -259,31 +273,42 @@ def load_nerf_dataset(
         max_views: read only the first ``max_views`` views of the split.
         holdout_every: ``k`` of the held-out views when a val/test json is missing.
         seed: seed of the ``"random"`` background.
+        allow_outside: accept ``file_path`` entries that lead outside the json's folder (absolute paths, ``..``);
+            off by default, so a dataset cannot make the loader read arbitrary files.
 
     Returns:
         A :class:`NerfDataset` on the CPU.
 
     Raises:
         FileNotFoundError: the json or an image it lists does not exist.
-        ValueError: the json has no frames or no intrinsics, an image is corrupt, or images differ in size.
+        ValueError: the json is malformed (no frames, a field of the wrong type, no or invalid intrinsics), an image
+            is corrupt or too large, images differ in size, or a path leaves the dataset folder.
     """
     json_path, hold_out = _split_json(Path(folder), split, holdout_every)
     try:
-        meta = json.loads(json_path.read_text())
-    except json.JSONDecodeError as error:
+        meta = json.loads(json_path.read_bytes())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise ValueError(f"{json_path} is not valid json: {error}") from error
+    except RecursionError as error:
+        raise ValueError(f"{json_path} nests too deeply to be a transforms json") from error
     frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not frames:
+    if not frames or not isinstance(frames, list):
         raise ValueError(f"{json_path} lists no frames; a transforms json needs a non-empty 'frames' list")
+    for k, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise ValueError(
+                f"frame {k} in {json_path} is {type(frame).__name__}, not an object with 'file_path' and "
+                "'transform_matrix'"
+            )
     if hold_out:
         frames = [frames[i] for i in range(len(frames)) if i % holdout_every == 0]
     if max_views is not None:
-        if max_views < 1:
-            raise ValueError(f"max_views must be at least 1, got {max_views}")
+        if not isinstance(max_views, int) or isinstance(max_views, bool) or max_views < 1:
+            raise ValueError(f"max_views must be an integer of at least 1, got {max_views!r}")
         frames = frames[:max_views]
     background_rgb = _check_background(background)
 
-    paths = [_image_path(json_path, frame) for frame in frames]
+    paths = [_image_path(json_path, frame, allow_outside) for frame in frames]
     with ThreadPoolExecutor(max_workers=4) as pool:
         loaded = list(pool.map(lambda p: _read_premultiplied(p, json_path, downscale), paths))
     (width, height), _ = loaded[0]
@@ -340,10 +365,23 @@ def _split_json(folder: Path, split: str, holdout_every: int) -> tuple[Path, boo
     return training, True
 
 
-def _image_path(json_path: Path, frame: dict) -> Path:
+def _image_path(json_path: Path, frame: dict, allow_outside: bool) -> Path:
     if "file_path" not in frame:
         raise ValueError(f"a frame in {json_path.name} has no 'file_path'")
-    path = (json_path.parent / frame["file_path"]).resolve()
+    file_path = frame["file_path"]
+    if not isinstance(file_path, str) or not file_path or "\x00" in file_path:
+        raise ValueError(
+            f"'file_path' {file_path!r} in {json_path} must be a non-empty string naming an image, "
+            "relative to the json's folder"
+        )
+    folder = os.path.normpath(os.path.abspath(json_path.parent))
+    joined = os.path.normpath(os.path.join(folder, file_path))
+    if not allow_outside and os.path.commonpath([folder, joined]) != folder:
+        raise ValueError(
+            f"'file_path' {file_path!r} in {json_path} leads outside the dataset folder {folder}; move the image "
+            "into the folder (paths relative to the json), or pass allow_outside=True if you trust this dataset"
+        )
+    path = Path(joined).resolve()
     if path.suffix in _IMAGE_EXTENSIONS and path.is_file():
         return path
     for extension in _IMAGE_EXTENSIONS:
@@ -364,13 +402,21 @@ def _read_premultiplied(path: Path, json_path: Path, downscale: int) -> tuple[tu
 
     try:
         with Image.open(path) as image:
+            width, height = image.size
+            if width * height > MAX_IMAGE_PIXELS:
+                raise _TooLargeError(f"{width}x{height} pixels")
             image.load()
             if image.mode in ("I;16", "I;16B", "I"):
                 grey = np.asarray(image, dtype=np.float32) / 65535.0
                 rgba = np.concatenate([np.repeat(grey[..., None], 3, -1), np.ones_like(grey)[..., None]], -1)
             else:
                 rgba = np.asarray(image.convert("RGBA"), dtype=np.float32) / 255.0
-    except (OSError, SyntaxError, ValueError) as error:
+    except (_TooLargeError, Image.DecompressionBombError) as error:
+        raise ValueError(
+            f"{path.name} listed in {json_path.name} is too large ({error}); images may have at most "
+            f"{MAX_IMAGE_PIXELS} pixels: downscale it"
+        ) from error
+    except (OSError, SyntaxError, ValueError, EOFError) as error:
         raise ValueError(
             f"{path.name} listed in {json_path.name} is not a readable image ({error}); re-export or re-download it"
         ) from error
@@ -386,7 +432,15 @@ def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Pat
     """``(fx, fy, cx, cy)`` in pixels of the full-size image, per-frame keys overriding top-level ones."""
 
     def get(key):
-        return frame.get(key, meta.get(key))
+        value = frame.get(key, meta.get(key))
+        if value is None:
+            return None
+        finite = isinstance(value, (int, float)) and not isinstance(value, bool) and abs(value) < 1e300
+        if not finite or not math.isfinite(value):  # (abs first: math.isfinite overflows on a huge int)
+            raise ValueError(
+                f"'{key}' of frame {frame.get('file_path')!r} in {json_path} must be a finite number, got {value!r}"
+            )
+        return value
 
     for key in _DISTORTION_KEYS:
         if get(key) not in (None, 0, 0.0):
@@ -395,15 +449,22 @@ def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Pat
                 "supported: undistort the images and drop the k/p coefficients"
             )
     for key, size in (("w", width), ("h", height)):
-        if get(key) is not None and int(get(key)) != size:
+        if get(key) is not None and get(key) != size:
             raise ValueError(
                 f"{json_path.name} says {key}={get(key)} but its images are {width}x{height} pixels; "
                 "fix the json or the images"
             )
+    for key in ("camera_angle_x", "camera_angle_y"):
+        angle = get(key)
+        if angle is not None and not 0.0 < angle < math.pi:
+            raise ValueError(
+                f"'{key}' of frame {frame.get('file_path')!r} in {json_path} is {angle}; a field of view must lie "
+                "in (0, π) radians"
+            )
     if get("fl_x") is not None:
         fx = float(get("fl_x"))
     elif get("camera_angle_x") is not None:
-        fx = 0.5 * width / math.tan(0.5 * float(get("camera_angle_x")))
+        fx = 0.5 * width / math.tan(0.5 * get("camera_angle_x"))
     else:
         raise ValueError(
             f"{json_path.name} gives no intrinsics: add 'camera_angle_x' (radians) or instant-NGP's 'fl_x' (pixels)"
@@ -411,7 +472,7 @@ def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Pat
     if get("fl_y") is not None:
         fy = float(get("fl_y"))
     elif get("camera_angle_y") is not None:
-        fy = 0.5 * height / math.tan(0.5 * float(get("camera_angle_y")))
+        fy = 0.5 * height / math.tan(0.5 * get("camera_angle_y"))
     else:
         fy = fx
     cx = float(get("cx")) if get("cx") is not None else 0.5 * width
@@ -422,7 +483,14 @@ def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Pat
 
 
 def _transform(frame: dict, json_path: Path) -> np.ndarray:
-    matrix = np.asarray(frame.get("transform_matrix", ()), dtype=np.float64)
+    matrix = frame.get("transform_matrix")
+    try:
+        matrix = np.asarray(matrix, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as error:
+        raise ValueError(
+            f"'transform_matrix' of frame {frame.get('file_path')!r} in {json_path} must be a 4x4 list of numbers "
+            f"({error})"
+        ) from error
     if matrix.shape == (3, 4):
         matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
     if matrix.shape != (4, 4) or not np.isfinite(matrix).all():

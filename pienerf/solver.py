@@ -150,16 +150,38 @@ class ControlQGMLS:
 
 @dataclass
 class StepReport:
-    """Per-step statistics; times in seconds."""
+    """Per-step statistics; times in seconds.
+
+    Attributes:
+        iterations: Newton iterations taken.
+        energy: incremental potential at the step's end (J).
+        last_update: largest |J Δq| of the last accepted update at the integrator points (m).
+        min_det: smallest det F over the quadrature points at the step's end.
+        line_search_halvings: halvings of Newton steps over the whole step.
+        converged: the last Newton update fell below ``newton_tolerance`` (or the Newton step was already at
+            round-off), with no failed line search; ``False`` when the iteration budget ran out first.
+        line_search_failure: why the last line search found no acceptable step, ``""`` when none failed:
+            ``"inversion"`` (every trial hit the never-invert bound, Ψ = +∞ for det F ≤ 0, down to the smallest
+            step), ``"no decrease"`` (finite trials, none decreasing the energy enough) or ``"not finite"``
+            (the Newton direction or the trial energies were NaN). The body then stays where the failed
+            iteration started: the step is not a solution of Eq. 2.
+    """
 
     iterations: int = 0
     energy: float = 0.0
-    last_update: float = 0.0  # largest |J Δq| at the integrator points (m)
+    last_update: float = 0.0
     min_det: float = 1.0
     line_search_halvings: int = 0
+    converged: bool = False
+    line_search_failure: str = ""
     time_assembly: float = 0.0
     time_solve: float = 0.0
     time_other: float = 0.0
+
+    @property
+    def line_search_failed(self) -> bool:
+        """Whether a line search of this step could not move (see ``line_search_failure``)."""
+        return bool(self.line_search_failure)
 
 
 class SolverQGMLS:
@@ -290,8 +312,7 @@ class SolverQGMLS:
 
         ``state_out`` may be ``state_in``. Returns the step's statistics and time breakdown.
         """
-        if not dt > 0 or not math.isfinite(dt):
-            raise ValueError(f"dt must be a finite positive number of seconds, got {dt}")
+        self._check_step_inputs(state_in, control, dt)
         report = StepReport()
         config = self.config
         clock = time.perf_counter()
@@ -349,16 +370,18 @@ class SolverQGMLS:
             energy = energy + spring_E + contact_E
             slope = (grad * step).sum()
             t = 1.0
+            trials = []  # each rejected trial energy: +inf for an inverted trial, NaN for a broken one
             for _ in range(config.line_search_steps):
                 trial = q + t * step
                 trial_elastic = self.integrator.evaluate(trial, gradient=False, hessian=False, project=False)
                 trial_energy = total_energy(trial, trial_elastic.energy)
                 if torch.isfinite(trial_energy) and trial_energy <= energy + 1e-4 * t * slope:
                     break
+                trials.append(trial_energy)
                 t *= 0.5
                 report.line_search_halvings += 1
             else:
-                t = 0.0  # no descent found: the iterate is stationary to round-off
+                t = 0.0
                 trial, trial_energy, trial_elastic = q, energy, elastic
             q = trial
             report.iterations += 1
@@ -366,7 +389,13 @@ class SolverQGMLS:
             report.min_det = float(trial_elastic.min_det)
             report.last_update = self._displacement_norm(t * step)
             report.time_other += time.perf_counter() - clock
+            if t == 0.0:
+                failure = self._line_search_failure(step, slope, energy, trials)
+                report.line_search_failure = failure
+                report.converged = not failure
+                break
             if report.last_update < config.newton_tolerance:
+                report.converged = True
                 break
 
         clock = time.perf_counter()
@@ -376,6 +405,61 @@ class SolverQGMLS:
         report.time_other += time.perf_counter() - clock
         return report
 
+    def _check_step_inputs(self, state: StateQGMLS, control: ControlQGMLS, dt) -> None:
+        """Refuse a step whose inputs are not finite (NaN/inf would reach the energy and freeze the body silently)
+        or whose springs are not finite, non-negative stiffnesses; one host read for all tensors."""
+        if not _finite_number(dt) or not float(dt) > 0:
+            raise ValueError(f"dt must be a finite positive number of seconds, got {dt!r}")
+        if not math.isfinite(state.time):
+            raise ValueError(f"state time must be finite, got {state.time}; reset the state")
+        named = [("state q", state.q), ("state qd", state.qd)]
+        for k, spring in enumerate(control.springs):
+            stiffness = spring.stiffness
+            if not _finite_number(stiffness) or float(stiffness) < 0:
+                raise ValueError(
+                    f"springs[{k}] stiffness must be a finite number >= 0 N/m, got {stiffness!r}; "
+                    "use a large finite stiffness for a stiff pin"
+                )
+            if tuple(spring.target.shape) != (spring.handle.index.shape[0], 3):
+                raise ValueError(
+                    f"springs[{k}] target must be [{spring.handle.index.shape[0]}, 3] (one per handle point), "
+                    f"got {tuple(spring.target.shape)}"
+                )
+            named.append((f"springs[{k}] target", spring.target))
+        for k, forces in enumerate(control.forces):
+            if tuple(forces.force.shape) != (forces.handle.index.shape[0], 3):
+                raise ValueError(
+                    f"forces[{k}] force must be [{forces.handle.index.shape[0]}, 3] (one per handle point), "
+                    f"got {tuple(forces.force.shape)}"
+                )
+            named.append((f"forces[{k}] force", forces.force))
+        for k, collider in enumerate(control.colliders):
+            numbers = [*collider.point, *collider.normal] if isinstance(collider, PlaneCollider) else []
+            if isinstance(collider, SphereCollider):
+                numbers = [*collider.centre, collider.radius]
+            if not all(_finite_number(v) for v in numbers):
+                raise ValueError(f"colliders[{k}] must have finite coordinates, got {collider!r}")
+        finite = torch.stack([torch.isfinite(t).all() for _, t in named]).tolist()
+        for (name, _), ok in zip(named, finite, strict=True):
+            if not ok:
+                raise ValueError(f"{name} holds NaN or inf; every input of a step must be finite")
+
+    def _line_search_failure(self, step, slope, energy, trials) -> str:
+        """Why no trial along ``step`` was accepted; ``""`` when the iterate is stationary to round-off (the Newton
+        step is below ``newton_tolerance`` or its predicted decrease −slope below the energy's rounding)."""
+        if not bool(torch.isfinite(step).all()) or not math.isfinite(float(energy)):
+            return "not finite"
+        if self._displacement_norm(step) < self.config.newton_tolerance:
+            return ""
+        if -float(slope) <= 64.0 * torch.finfo(torch.float64).eps * abs(float(energy)):
+            return ""
+        values = torch.stack(trials)
+        if bool(torch.isnan(values).any()):
+            return "not finite"
+        if bool(torch.isinf(values).all()):
+            return "inversion"
+        return "no decrease"
+
     def solve_static(self, control: ControlQGMLS, q0: torch.Tensor | None = None, iterations: int = 50):
         """Static equilibrium ∇U(q) = f under ``control`` (Newton with line search, no inertia).
 
@@ -383,6 +467,7 @@ class SolverQGMLS:
         final update size).
         """
         q = q0.clone() if q0 is not None else torch.zeros(self._n, 3, dtype=torch.float64, device=self.model.device)
+        self._check_step_inputs(StateQGMLS(q, torch.zeros_like(q)), control, 1.0)
         f_ext = self._external_force(control)
 
         def energy_at(x):
@@ -412,6 +497,16 @@ class SolverQGMLS:
             if update < self.config.newton_tolerance:
                 break
         return q, update
+
+
+def _finite_number(value) -> bool:
+    """Whether ``value`` is a real, finite number (a Python or NumPy scalar, or a one-element tensor)."""
+    if isinstance(value, (bool, str, bytes)):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except (TypeError, ValueError):
+        return False
 
 
 def _spd_factor(H: torch.Tensor) -> torch.Tensor:

@@ -172,8 +172,12 @@ def load_checkpoint(path: str | Path) -> NerfCheckpoint:
     missing = [k for k in ("config", "aabb", "field", "grid", "step") if k not in payload]
     if missing:
         raise ValueError(f"{path} lacks {', '.join(missing)}; the checkpoint is incomplete: save it again")
+    step = payload["step"]
+    if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+        raise ValueError(f"{path} holds step {step!r}, not a count of training steps >= 0: save the checkpoint again")
     try:
         config = NGPConfig.from_dict(payload["config"])
+        _check_sizes(path, config, payload)
         field = NGPField(config, payload["aabb"])
         field.load_state_dict(payload["field"])
         g = payload["grid"]
@@ -182,16 +186,40 @@ def load_checkpoint(path: str | Path) -> NerfCheckpoint:
         train_config = payload.get("train_config")
         if train_config is not None:
             train_config = TrainConfig(**{**train_config, "betas": tuple(train_config["betas"])})
-    except (TypeError, KeyError, RuntimeError, ValueError) as error:
+    except (TypeError, KeyError, RuntimeError, ValueError, AttributeError, IndexError, OverflowError) as error:
         raise ValueError(f"{path} holds inconsistent parts ({error}); save the checkpoint again") from error
     device = backend.torch_device()
     return NerfCheckpoint(
         field=field.to(device).eval(),
         grid=grid.to(device),
-        step=int(payload["step"]),
+        step=step,
         train_config=train_config,
         optimizer_state=payload.get("optimizer"),
     )
+
+
+def _check_sizes(path: Path, config: NGPConfig, payload: dict) -> None:
+    """Refuse a checkpoint whose config asks for far more memory than the file stores, before anything is allocated:
+    the occupancy grid must be stored at its ``resolution³``, and the hash tables the config implies may not exceed
+    the field's stored values (a header claiming 2⁶⁰ table entries must not reach the allocator)."""
+    g = payload["grid"]
+    if not isinstance(g, dict) or not all(isinstance(g.get(k), torch.Tensor) for k in ("density", "occupied")):
+        raise ValueError("'grid' must hold 'density' and 'occupied' tensors")
+    resolution = g.get("resolution")
+    if isinstance(resolution, bool) or not isinstance(resolution, int) or resolution < 1:
+        raise ValueError(f"grid resolution {resolution!r} is not a positive integer")
+    for name in ("density", "occupied"):
+        if tuple(g[name].shape) != (resolution,) * 3:
+            raise ValueError(f"grid {name} is {tuple(g[name].shape)}, not {resolution}³")
+    stored = payload["field"]
+    if not isinstance(stored, dict) or not all(isinstance(v, torch.Tensor) for v in stored.values()):
+        raise ValueError("'field' must map parameter names to tensors")
+    h = config.hashgrid
+    table = h.levels * h.table_size * h.features  # the encoding's [L, T, F] parameter
+    held = sum(v.numel() for v in stored.values())
+    widths = (config.density_hidden, config.color_hidden, config.color_layers, config.geometric_features)
+    if table > held or max(widths) > held:
+        raise ValueError(f"the config asks for at least {max(table, *widths)} parameters but the file holds {held}")
 
 
 class Trainer:

@@ -68,6 +68,48 @@ def test_hanging_strip_stretches_as_a_bar_under_its_own_weight(device):
     assert float(displacement[:, 2].abs().max()) < 1e-3 * expected  # stays in its plane
 
 
+def _alternating_strip(nx: int, ny: int, width: float, length: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A flat ``width × length`` sheet (m) of ``nx × ny`` vertices whose cells alternate their diagonal, so
+    diagonals two cells apart are exactly parallel and coplanar; faces counter-clockwise seen from +z."""
+    gx, gy = torch.meshgrid(
+        torch.linspace(0, width, nx, dtype=F64), torch.linspace(0, length, ny, dtype=F64), indexing="ij"
+    )
+    x = torch.stack([gx, gy, torch.zeros_like(gx)], -1).reshape(-1, 3)
+    faces = []
+    for i in range(nx - 1):
+        for j in range(ny - 1):
+            v = i * ny + j
+            if (i + j) % 2 == 0:
+                faces += [(v, v + ny, v + ny + 1), (v, v + ny + 1, v + 1)]
+            else:
+                faces += [(v, v + ny, v + 1), (v + 1, v + ny, v + ny + 1)]
+    return x, torch.tensor(faces, dtype=torch.int32)
+
+
+def test_flat_strip_with_alternating_diagonals_hangs_and_stretches(device):
+    """A flat 0.2 × 0.5 m cotton strip with alternating diagonals, top row fixed, moves under gravity and settles
+    at the bar's stretch ``ρ g L² / (2E)`` (between that and ``(1 − ν²)`` of it, where the clamp stops the sideways
+    contraction near the top); its exactly parallel coplanar diagonals, 14.6 mm apart and far from touching, must
+    not stop the line search."""
+    width, length = 0.2, 0.5
+    x, faces = _alternating_strip(20, 50, width, length)
+    top = (x[:, 1] == x[:, 1].max()).nonzero().squeeze(1)
+    no_body = torch.zeros(0, 3, dtype=torch.int32)
+    solver = SolverCloth(x, faces, ClothConfig(), no_body)
+    state = solver.initial_state()
+    stats = solver.step(state, state, _pinned(x, top), 1.0 / 30.0)
+    assert not stats.line_search_stalled
+    assert float((state.x.cpu() - x)[:, 1].min()) < 0.0, "the strip falls"
+
+    config = ClothConfig(static=True, newton_tolerance=1e-9, max_newton_iterations=30)
+    solver = SolverCloth(x, faces, config, no_body)
+    displacement = _static_solve(solver, _pinned(x, top))
+    uniaxial = config.density * 9.81 * length**2 / (2.0 * config.young)
+    measured = -float(displacement[x[:, 1] == 0.0, 1].mean())
+    assert (1.0 - config.poisson**2) * uniaxial * 0.98 <= measured <= uniaxial * 1.02
+    assert float(displacement[:, 2].abs().max()) < 1e-3 * uniaxial  # stays in its plane
+
+
 def test_cantilever_deflects_as_euler_bernoulli_predicts(device):
     """A clamped strip under a small distributed load deflects ``δ = w L⁴ / (8 B)`` at its tip (10 %).
 
