@@ -11,6 +11,7 @@ Conventions are those of :mod:`physavatar.body`: metres, y up, the body faces +z
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,8 +36,12 @@ __all__ = [
 ]
 
 BOUNDARY_MODES = ("waist", "shoulders", "auto")
-SHARED_GARMENTS = Path(__file__).resolve().parents[2] / "shared" / "data" / "garments"
-"""The DiffCloth garments of the project's read-only data folder beside the checkout; absent in a fresh clone."""
+SHARED_GARMENTS = (
+    Path(os.environ.get("PIE_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data").expanduser()
+    / "garments"
+)
+"""The DiffCloth garments of the project's read-only data folder (``$PIE_SHARED_DATA``, else ``../shared/data`` beside
+the checkout, as :data:`pienerf.paths.SHARED_DATA`, which this package may not import); absent in a fresh clone."""
 DEFAULT_GARMENT = SHARED_GARMENTS / "skirt1252.obj"
 """The garment simulated when none is given, where the shared data folder is present."""
 _PLAUSIBLE_HEIGHT = (0.1, 2.0)  # m, the vertical extent of a garment worn by an adult

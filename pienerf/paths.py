@@ -1,7 +1,8 @@
 """Where the project reads third-party data and keeps what it computes once.
 
-* :data:`SHARED_DATA`: the shared data folder ``../shared/data`` beside the checkout (datasets such as
-  ``nerf_synthetic_lego``); it is only read, never written.
+* :data:`SHARED_DATA`: the shared data folder, ``$PIE_SHARED_DATA`` or else ``../shared/data`` beside the checkout
+  (datasets such as ``nerf_synthetic_lego``); it is only read, never written. Pointing ``PIE_SHARED_DATA`` at a
+  missing folder runs the project as on a machine without it.
 * :func:`cache_root`: the cache of rendered scene views and fitted NeRF checkpoints, ``$PIE_CACHE_DIR`` or
   ``~/.cache/pie-physavatar`` unless a folder is given.
 """
@@ -13,8 +14,10 @@ from pathlib import Path
 
 __all__ = ["SHARED_DATA", "cache_root"]
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-"""The shared data folder beside the checkout (read only)."""
+SHARED_DATA = Path(
+    os.environ.get("PIE_SHARED_DATA") or Path(__file__).resolve().parents[2] / "shared" / "data"
+).expanduser()
+"""The shared data folder (read only): ``$PIE_SHARED_DATA``, else ``../shared/data`` beside the checkout."""
 
 
 def cache_root(cache_dir: str | Path | None = None) -> Path:

@@ -13,8 +13,7 @@ from pathlib import Path
 import pytest
 
 from kernels import backend
-
-SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from pienerf.paths import SHARED_DATA
 
 
 def pytest_addoption(parser):
@@ -24,6 +23,20 @@ def pytest_addoption(parser):
         choices=list(backend.DEVICES),
         help="device the kernels run on in this test process (default: cuda when present, else cpu)",
     )
+
+
+def pytest_configure(config):
+    config.addinivalue_line(
+        "markers",
+        "data: touches the shared data folder (directly or through an app's default); CI runs these once more with "
+        "PIE_SHARED_DATA pointing nowhere, as on a machine without the folder",
+    )
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.data)
 
 
 def pytest_generate_tests(metafunc):

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch.func import grad, hessian, vmap
+from torch.func import grad, jacrev, vmap
 
 __all__ = [
     "pair_boxes_overlap",
@@ -38,7 +38,8 @@ def _terms(energy_fn, q: torch.Tensor, *params: torch.Tensor):
         return q.new_zeros(0), q.new_zeros(0, k, 3), q.new_zeros(0, 3 * k, 3 * k)
     energy = vmap(energy_fn)(q, *params)
     g = vmap(grad(energy_fn))(q, *params)
-    h = vmap(hessian(energy_fn))(q, *params).reshape(n, 3 * k, 3 * k)
+    # reverse over reverse: torch.func.hessian's forward mode loads decompositions through deprecated TorchScript
+    h = vmap(jacrev(jacrev(energy_fn)))(q, *params).reshape(n, 3 * k, 3 * k)
     return energy, g, h
 
 

@@ -7,6 +7,8 @@ import pytest
 from apps import bench
 from physavatar.garment import SHARED_GARMENTS
 
+pytestmark = pytest.mark.data  # the cloth and NeRF workloads read garments and the lego scene when present
+
 
 def test_copy_workloads_write_complete_records(device, tmp_path):
     path = tmp_path / "bench.json"

@@ -11,6 +11,8 @@ import pytest
 from apps import render
 from pienerf import scenario as scenario_module
 
+pytestmark = pytest.mark.data  # the lego scenario reads the lego scene when present
+
 SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios").glob("*.toml"))
 
 

@@ -9,6 +9,8 @@ from physavatar import garment as garment_module
 from physavatar.body import Body
 from physavatar.garment import boundary_targets, load_garment, place_on_body, procedural_skirt, select_boundary
 
+pytestmark = pytest.mark.data  # the default garment comes from the shared folder when present
+
 
 @pytest.fixture(scope="module")
 def body() -> Body:

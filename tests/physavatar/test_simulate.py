@@ -17,6 +17,8 @@ from physavatar.garment import DEFAULT_GARMENT, load_garment, place_on_body, pro
 from physavatar.motion import walk
 from physavatar.simulate import simulate, write_meshes, write_npz, write_stats_json
 
+pytestmark = pytest.mark.data  # the default garment comes from the shared folder when present
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
