@@ -13,6 +13,7 @@ import torch
 from tornado.httpclient import HTTPRequest
 from tornado.websocket import websocket_connect
 
+from kernels import backend
 from pienerf.viewer import build_app
 from pienerf.viewer.meshcat_viewer import Y_UP_TO_Z_UP, page_cameras
 
@@ -20,10 +21,8 @@ CLIENT = 1
 
 
 @pytest.fixture(scope="module")
-def app():
-    from kernels import backend
-
-    backend.init("cpu")
+def app(request):
+    backend.init(request.config.getoption("--device") or backend.default_device())
     app = build_app("plant", "meshcat", "127.0.0.1", 0, smoke=True)
     yield app
     app.viewer.close()
