@@ -510,8 +510,9 @@ class Simulation:
         return frame
 
     def deformed_mesh_vertices(self) -> torch.Tensor:
-        """``[V, 3]`` float32 scene mesh vertices at the current state (m)."""
-        return self._mesh_backend.deform(self.state.q).cpu()
+        """``[V, 3]`` float32 scene mesh vertices at the current state (m), a new tensor the caller owns (the mesh
+        backend deforms its picking surface in place, so a view of it would change under the caller)."""
+        return self._mesh_backend.deform(self.state.q).to("cpu", copy=True)
 
     def particle_positions(self) -> torch.Tensor:
         """``[P, 3]`` deformed particle positions (m)."""
