@@ -131,7 +131,7 @@ def test_meshcat_page_drags_sets_pins_resets_and_shows_the_nerf(device, tmp_path
             for _ in range(4):
                 page.keyboard.press("ArrowRight")
             assert _poll(page, app, lambda: sim.material.young_modulus > 1.2 * young), f"errors {app.errors}"
-            assert "kPa" in page.inner_text("#young_modulus-value")
+            assert "MPa" in page.inner_text("#young_modulus-value")
             assert _poll(page, app, lambda: "young modulus" in _stats(page)["lastMessage"])
 
             # A click keeps a point picked; pin it; reset.
