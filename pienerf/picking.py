@@ -197,11 +197,13 @@ class DragConfig:
         stiffness: k of the drag spring (N/m); ``None`` → Young's modulus × 0.05 m.
         damping: c of the drag damper (N·s/m); ``None`` → k × 0.1 s.
         max_acceleration: a_max of the drag (m/s²), the largest acceleration the spring may give the picked point.
+            It only guards against a wild jump of the target: a plant leaf's effective mass is about 0.1 kg, so a clamp
+            near g would cap the pull at a few newtons and a body stiff enough to stand would not follow the mouse.
     """
 
     stiffness: float | None = None
     damping: float | None = None
-    max_acceleration: float = 30.0
+    max_acceleration: float = 1.0e5
 
     def __post_init__(self):
         if self.stiffness is not None and not (0 < self.stiffness < math.inf):

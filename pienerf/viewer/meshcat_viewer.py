@@ -175,8 +175,10 @@ class MeshcatViewer:
         # The camera: meshcat's /Cameras/default frame at the origin, its camera (in the y-up frame meshcat
         # rotates it into) in front of the body, and the orbit target (set by the script) on the body's centre.
         centre = sim.centre.double().numpy()
+        extent = float((sim.mesh_vertices.amax(0) - sim.mesh_vertices.amin(0)).max())
         send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
-        position = (centre + np.array([0.0, 0.25, 1.9])).tolist()  # meshcat's camera sees 75° vertically
+        # meshcat's camera sees 75° vertically: from 1.2 extents away the body fills about half the view's height.
+        position = (centre + extent * np.array([0.0, 0.2, 1.15])).tolist()
         send(
             SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
         )

@@ -58,8 +58,10 @@ class ViserViewer:
         faces = sim.mesh_faces.numpy().astype(np.uint32)
         self._faces = faces
         self._colors = (sim.mesh_colors.numpy() * 255).astype(np.uint8)
+        # viser's mesh takes one colour (the scene's median); its only vertex-coloured path, a GLB, is re-sent and
+        # re-parsed whole on every change, where this mesh takes each frame's vertex buffer alone.
         self.mesh = server.scene.add_mesh_simple(
-            "/body", sim.deformed_mesh_vertices().numpy(), faces, color=(200, 170, 120)
+            "/body", sim.deformed_mesh_vertices().numpy(), faces, color=tuple(np.median(self._colors, 0).astype(int))
         )
         self.particles = server.scene.add_point_cloud(
             "/particles",
