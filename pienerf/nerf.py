@@ -381,7 +381,9 @@ def render_rays(
     near = torch.as_tensor(near, dtype=torch.float32, device=device).expand(rays)
     far = torch.as_tensor(far, dtype=torch.float32, device=device).expand(rays)
     min_step = c.min_step(field.aabb.cpu())
-    step = chunk or max(rays, 1)
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive number of rays or None (one batch), got {chunk!r}")
+    step = max(rays, 1) if chunk is None else chunk
     parts = []
     for a in range(0, rays, step):
         b = min(a + step, rays)

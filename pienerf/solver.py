@@ -211,7 +211,9 @@ class SolverQGMLS:
         self.mass_flat = torch.kron(self.mass, torch.eye(3, dtype=torch.float64, device=model.device))
         gravity = model.translation(torch.tensor(self.config.gravity, dtype=torch.float64))
         self.gravity_force = self.mass @ gravity
-        stiffness = self.config.contact_stiffness or 100.0 * material.young_modulus
+        stiffness = self.config.contact_stiffness
+        if stiffness is None:
+            stiffness = 100.0 * material.young_modulus
         self.contact_spring = stiffness * model.volume.pow(1.0 / 3.0)
         self._eye9 = torch.eye(3, dtype=torch.float64, device=model.device).reshape(9)
         self._n = n
