@@ -83,4 +83,8 @@ def check_output_file(file: Path | str, flag: str) -> None:
         raise OutputPathError(f"{flag} {file} is a folder; pass a file path such as {file / 'results.json'}")
     if file.exists() and not os.access(file, os.W_OK):
         raise OutputPathError(f"{flag} {file} is not writable; pass a file path you may write to")
-    check_output_folder(file.parent, f"{flag}'s folder")
+    existing = _nearest_existing(file.parent)
+    if not existing.is_dir():
+        raise OutputPathError(f"{flag} {file} lies under {existing}, a file, not a folder; pass a path in a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{flag} {file}: cannot write into {existing}; pass a file path you may write to")
