@@ -30,9 +30,17 @@ A ``[nerf]`` table renders the scene's NeRF warped by the simulated deformation 
 The fitted NeRF is cached as a checkpoint under ``--cache-dir`` (default ``$PIE_CACHE_DIR``, else
 ``~/.cache/pie-physavatar``), so a second run loads it.
 
-``--smoke`` applies the scenario's ``[smoke]`` table (few frames, tiny images, few kernels). A bad scenario stops
-with one line naming the key and the fix. A scenario whose ``requires`` cannot be met (a trained NeRF, the
-warped-NeRF renderer, a data folder) is skipped: ``metrics.json`` holds ``skipped`` and the reason, exit status 0.
+``--smoke`` applies the scenario's ``[smoke]`` table (few frames, tiny images, few kernels). A bad scenario (an
+unknown key, a wrong type, a number outside its range, a missing required key) or an ``--out`` that cannot be
+written stops before any work with one line naming the file, the key and the fix; exit status 2.
+
+Every file is written whole or not at all (a temporary file in the same folder, then moved into place). Ctrl-C
+stops the render with exit status 130: ``metrics.json`` then holds the frames that finished and
+``"interrupted": true``, and ``video.mp4`` those frames. A failed write (a full disk) records ``"error"`` in
+``metrics.json`` with the finished frames where it can, and exits with status 1.
+
+A scenario whose ``requires`` cannot be met (a trained NeRF, the warped-NeRF renderer, a data folder) is skipped:
+``metrics.json`` holds ``skipped`` and the reason, exit status 0.
 
 The scenario logic (schema, checks, building, keyframes, colliders, cameras) is :mod:`pienerf.scenario`; this
 program renders the frames and writes the files.
