@@ -240,16 +240,7 @@ def _check_table(table: dict, section: str, where: str) -> None:
             raise ScenarioError(f"unknown key '{path}'; valid keys here: {', '.join(sorted(schema))}")
         expected = schema[key]
         if expected == _VEC3:
-            ok = (
-                isinstance(value, list)
-                and len(value) == 3
-                and all(_finite_number(v) and abs(v) <= MAX_COORDINATE for v in value)
-            )
-            if not ok:
-                raise ScenarioError(
-                    f"'{path}' must be 3 finite numbers of magnitude <= {MAX_COORDINATE:g} like [0.0, 1.0, 0.0], "
-                    f"got {value!r}"
-                )
+            _check_vec3(value, path)
         elif isinstance(expected, _Number):
             if not expected.admits(value):
                 raise ScenarioError(f"'{path}' must be {expected.describe()}, got {value!r}")
@@ -315,7 +306,9 @@ def _check_vec3(value, where: str) -> None:
         and len(value) == 3
         and all(_finite_number(v) and abs(v) <= MAX_COORDINATE for v in value)
     ):
-        raise ScenarioError(f"'{where}' must be 3 finite numbers like [0.0, 1.0, 0.0] (m), got {value!r}")
+        raise ScenarioError(
+            f"'{where}' must be 3 finite numbers of magnitude <= {MAX_COORDINATE:g} like [0.0, 1.0, 0.0], got {value!r}"
+        )
 
 
 def _check_strings(value: list, where: str, valid=None, empty: bool = True) -> None:
