@@ -36,6 +36,10 @@ from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, p
 from physavatar.motion import MOTIONS, load_bvh, named_motion
 
 SMOKE_FRAMES = 3
+MAX_FRAMES = 10_000
+"""Most frames ``--frames`` may ask for (6.7 minutes of motion at 25 fps): the frames are held in memory."""
+MAX_VIDEO_SIZE = 8192
+"""Largest video width or height (px)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -126,11 +130,13 @@ def _check_out(out: Path) -> None:
 
 def simulate_command(args: argparse.Namespace) -> None:
     frames = SMOKE_FRAMES if args.smoke else args.frames
-    if frames < 1:
-        raise ValueError(f"--frames must be at least 1, got {frames}")
+    if not 1 <= frames <= MAX_FRAMES:
+        raise ValueError(f"--frames must be at least 1 and at most {MAX_FRAMES}, got {frames}")
     width, height = args.video_size
-    if width < 1 or height < 1:
-        raise ValueError(f"--video-size must be two positive pixel counts W H, got {width} {height}")
+    if not (1 <= width <= MAX_VIDEO_SIZE and 1 <= height <= MAX_VIDEO_SIZE):
+        raise ValueError(
+            f"--video-size must be two positive pixel counts W H, got {width} {height}; each at most {MAX_VIDEO_SIZE}"
+        )
     _check_motion(args.motion)
     _check_out(args.out)
     sim.require_video_encoder()  # before the simulation, not after it
@@ -163,6 +169,8 @@ def simulate_command(args: argparse.Namespace) -> None:
 def stage_command(args: argparse.Namespace) -> None:
     _check_out(args.out)
     config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
+    if args.frames is not None and args.frames > MAX_FRAMES:
+        raise ValueError(f"--frames must be at most {MAX_FRAMES}, got {args.frames}")
     if args.frames is not None:
         config = dataclasses.replace(config, frames=args.frames)
     if getattr(args, "fd_iterations", None) is not None:

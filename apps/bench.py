@@ -13,12 +13,10 @@ records.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -26,6 +24,7 @@ import torch
 
 from apps.workloads import SIZES, Case, WorkloadUnavailable, load_all
 from kernels import backend
+from pienerf.output_files import OutputPathError, check_output_file, write_json
 
 # Data-sheet peaks: DRAM bandwidth (bytes/s) and dense FP32 non-tensor-core throughput (FLOP/s).
 GPU_PEAKS = {
@@ -34,6 +33,8 @@ GPU_PEAKS = {
     "A100": {"bandwidth": 2.0e12, "fp32": 19.5e12},
 }
 DEFAULT_REPS = {"smoke": 3, "paper": 10, "large": 5}
+MAX_REPS = 10_000
+"""Most timed repetitions ``--reps`` may ask for."""
 REFERENCE_BUDGET_S = 20.0
 
 
@@ -131,14 +132,6 @@ def _ms(seconds: float) -> str:
     return f"{seconds * 1e3:.3f} ms"
 
 
-def write_json(path: Path, records: list[dict]) -> None:
-    """Write ``records`` to ``path`` atomically (a crash never leaves half a file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as f:
-        json.dump(records, f, indent=2)
-    os.replace(f.name, path)
-
-
 def _fail(message: str) -> None:
     print(f"bench: error: {message}", file=sys.stderr)
     raise SystemExit(2)
@@ -166,14 +159,19 @@ def main(argv: list[str] | None = None) -> list[dict]:
         _fail(f"unknown workload {', '.join(map(repr, unknown)) or repr(args.workload)}; valid: {', '.join(registry)}")
     if args.size not in SIZES:
         _fail(f"unknown size {args.size!r}; valid: {', '.join(SIZES)}")
-    if args.reps is not None and args.reps < 1:
-        _fail(f"--reps must be at least 1, got {args.reps}")
+    if args.reps is not None and not 1 <= args.reps <= MAX_REPS:
+        _fail(f"--reps must be between 1 and {MAX_REPS}, got {args.reps}")
+    if args.json is not None:
+        try:
+            check_output_file(args.json, "--json")
+        except OutputPathError as error:
+            _fail(str(error))
     try:
         device = backend.init(args.device)
     except (ValueError, RuntimeError) as error:
         _fail(str(error))
 
-    reps = args.reps or DEFAULT_REPS[args.size]
+    reps = DEFAULT_REPS[args.size] if args.reps is None else args.reps
     records = []
     for i, name in enumerate(names, 1):
         print(f"[{i}/{len(names)}] {name} on {device} ({args.size})", file=sys.stderr, flush=True)
@@ -186,6 +184,7 @@ def main(argv: list[str] | None = None) -> list[dict]:
         del case
     print_table(records)
     if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.json, records)
         print(f"wrote {args.json}", file=sys.stderr)
     return records

@@ -30,9 +30,17 @@ A ``[nerf]`` table renders the scene's NeRF warped by the simulated deformation 
 The fitted NeRF is cached as a checkpoint under ``--cache-dir`` (default ``$PIE_CACHE_DIR``, else
 ``~/.cache/pie-physavatar``), so a second run loads it.
 
-``--smoke`` applies the scenario's ``[smoke]`` table (few frames, tiny images, few kernels). A bad scenario stops
-with one line naming the key and the fix. A scenario whose ``requires`` cannot be met (a trained NeRF, the
-warped-NeRF renderer, a data folder) is skipped: ``metrics.json`` holds ``skipped`` and the reason, exit status 0.
+``--smoke`` applies the scenario's ``[smoke]`` table (few frames, tiny images, few kernels). A bad scenario (an
+unknown key, a wrong type, a number outside its range, a missing required key) or an ``--out`` that cannot be
+written stops before any work with one line naming the file, the key and the fix; exit status 2.
+
+Every file is written whole or not at all (a temporary file in the same folder, then moved into place). Ctrl-C
+stops the render with exit status 130: ``metrics.json`` then holds the frames that finished and
+``"interrupted": true``, and ``video.mp4`` those frames. A failed write (a full disk) records ``"error"`` in
+``metrics.json`` with the finished frames where it can, and exits with status 1.
+
+A scenario whose ``requires`` cannot be met (a trained NeRF, the warped-NeRF renderer, a data folder) is skipped:
+``metrics.json`` holds ``skipped`` and the reason, exit status 0.
 
 The scenario logic (schema, checks, building, keyframes, colliders, cameras) is :mod:`pienerf.scenario`; this
 program renders the frames and writes the files.
@@ -41,7 +49,8 @@ program renders the frames and writes the files.
 from __future__ import annotations
 
 import argparse
-import json
+import errno
+import os
 import sys
 import time
 from pathlib import Path
@@ -52,6 +61,7 @@ import torch
 from PIL import Image
 
 from kernels import backend
+from pienerf.output_files import OutputPathError, atomic_path, check_output_folder, write_json
 from pienerf.reports import plot_time_breakdown, plot_volume_bars
 from pienerf.scenario import (
     ScenarioError,
@@ -94,28 +104,46 @@ def _render_tiles(run: ScenarioRun, scenario: dict, t: float, frame: int, output
             tiles.append(result.rgba.cpu())  # render modes may return different devices
             stem = f"{run.name}_{mode}_view{view}_{frame:04d}"
             if outputs["depth"]:
-                np.save(out / "depth" / f"{stem}.npy", result.depth.cpu().numpy().astype(np.float32))
-                Image.fromarray(_depth_preview(result.depth)).save(out / "depth" / f"{stem}.png")
+                with atomic_path(out / "depth" / f"{stem}.npy") as temporary:
+                    np.save(temporary, result.depth.cpu().numpy().astype(np.float32))
+                _save_png(_depth_preview(result.depth), out / "depth" / f"{stem}.png")
             if outputs["shadow"] and result.shadow is not None:
-                Image.fromarray(_to_uint8(result.shadow)).save(out / "shadow" / f"{stem}.png")
+                _save_png(_to_uint8(result.shadow), out / "shadow" / f"{stem}.png")
     return tiles
 
 
-def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: dict) -> dict:
-    """Step and render every frame, writing the tiled PNGs and the video; returns the timings and per-frame record."""
+def _save_png(image: np.ndarray, path: Path) -> None:
+    """One PNG, written whole or not at all."""
+    with atomic_path(path) as temporary:
+        Image.fromarray(image).save(temporary)
+
+
+def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: dict, written: dict) -> None:
+    """Step and render every frame, writing the tiled PNGs and the video.
+
+    ``written`` gathers the timings and the per-frame record as frames finish, so that a run stopped part way
+    (Ctrl-C, a full disk) still reports what it finished. The video is written to a temporary file and moved into
+    place when the frames end, or when Ctrl-C stops them (it then holds the finished frames); a failed write
+    removes it.
+    """
     frames, substeps = frame_count(scenario)
     samples = sorted(scenario.get("volume_samples", []), key=lambda s: s["time"])
     for folder in ("frames", "depth", "shadow"):
         if outputs[folder]:
             (out / folder).mkdir(exist_ok=True)
-    writer = None
-    if outputs["mp4"]:
-        writer = imageio.get_writer(
-            out / "video.mp4", fps=outputs["fps"], codec="libx264", quality=7, macro_block_size=1, pixelformat="yuv420p"
-        )
     dt = runs[0].simulation.config.dt * substeps
     step_seconds = {run.name: [] for run in runs}
-    render_seconds, per_frame = 0.0, []
+    per_frame = []
+    written.update(
+        substeps=substeps, samples=samples, step_seconds=step_seconds, render_seconds=0.0, per_frame=per_frame
+    )
+    writer, video = None, None
+    if outputs["mp4"]:
+        video = out / f".video.partial{os.getpid()}.mp4"
+        writer = imageio.get_writer(
+            video, fps=outputs["fps"], codec="libx264", quality=7, macro_block_size=1, pixelformat="yuv420p"
+        )
+    keep_video = False
     try:
         for frame in range(frames + 1):
             t = frame * dt
@@ -126,24 +154,40 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
                 record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, t)
                 start = time.perf_counter()
                 tiles += _render_tiles(run, scenario, t, frame, outputs, out)
-                render_seconds += time.perf_counter() - start
+                written["render_seconds"] += time.perf_counter() - start
             image = torch.cat(tiles, dim=1)
             rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
             if outputs["frames"]:
-                Image.fromarray(_to_uint8(image), mode="RGBA").save(out / "frames" / f"frame_{frame:04d}.png")
+                _save_png(_to_uint8(image), out / "frames" / f"frame_{frame:04d}.png")
             if writer is not None:
                 writer.append_data(_to_uint8(rgb))
             per_frame.append(record)
+        keep_video = True
+    except KeyboardInterrupt:
+        keep_video = bool(per_frame)
+        raise
     finally:
         if writer is not None:
-            writer.close()
+            try:
+                writer.close()
+            finally:
+                if keep_video:
+                    os.replace(video, out / "video.mp4")
+                else:
+                    video.unlink(missing_ok=True)
+
+
+def _finished_metrics(runs: list[ScenarioRun], written: dict) -> dict:
+    """The metrics of the frames that finished: all of them, or those before a stop."""
+    breakdown = merged_breakdown(runs)
     return {
-        "frames": frames,
-        "substeps": substeps,
-        "samples": samples,
-        "step_seconds": step_seconds,
-        "render_seconds": render_seconds,
-        "per_frame": per_frame,
+        "frames": len(written["per_frame"]),
+        "steps_per_frame": written["substeps"],
+        "dt_s": runs[0].simulation.config.dt,
+        "render_seconds": written["render_seconds"],
+        "time_breakdown": breakdown.to_dict(),
+        "variants": {run.name: run_metrics(run, written["step_seconds"][run.name]) for run in runs},
+        "per_frame": written["per_frame"],
     }
 
 
@@ -164,22 +208,34 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
     reason = unmet_requirement(scenario)
     if reason is not None:
         metrics["skipped"] = reason
-        (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        write_json(out / "metrics.json", metrics)
         log(f"{name}: skipped: {reason}")
         return metrics
 
     outputs = scenario_outputs(scenario)
     frame_count(scenario)  # checked before any fitting
-    nerf = prepare_nerf(scenario, cache_dir, log)
-    clock = time.perf_counter()
-    runs = build_runs(scenario, nerf)
-    build_seconds = time.perf_counter() - clock
-    written = _write_frames(scenario, runs, out, outputs)
-
-    breakdown = merged_breakdown(runs)
-    plot_time_breakdown(breakdown, out / "time_breakdown.png", title=name)
-    if written["samples"]:
-        plot_volume_bars([(run.name, run.volumes) for run in runs], out / "volume_bars.png")
+    runs, written = [], {}
+    try:
+        nerf = prepare_nerf(scenario, cache_dir, log)
+        clock = time.perf_counter()
+        runs = build_runs(scenario, nerf)
+        metrics["build_seconds"] = time.perf_counter() - clock
+        _write_frames(scenario, runs, out, outputs, written)
+        breakdown = merged_breakdown(runs)
+        plot_time_breakdown(breakdown, out / "time_breakdown.png", title=name)
+        if written["samples"]:
+            plot_volume_bars([(run.name, run.volumes) for run in runs], out / "volume_bars.png")
+    except (KeyboardInterrupt, OSError) as stop:
+        if isinstance(stop, KeyboardInterrupt):
+            metrics["interrupted"] = True
+        else:
+            metrics["error"] = str(stop)
+        if runs and written:
+            metrics.update(_finished_metrics(runs, written))
+        else:
+            metrics["frames"] = 0
+        write_json(out / "metrics.json", metrics, default=str)
+        raise
     if nerf is not None:
         metrics["nerf"] = {
             "source": nerf.source,
@@ -188,27 +244,25 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
             "warps": nerf.warps,
             "modes": {run.name: run.modes for run in runs},
         }
-    metrics.update(
-        {
-            "frames": written["frames"] + 1,
-            "steps_per_frame": written["substeps"],
-            "dt_s": runs[0].simulation.config.dt,
-            "build_seconds": build_seconds,
-            "render_seconds": written["render_seconds"],
-            "time_breakdown": breakdown.to_dict(),
-            "variants": {run.name: run_metrics(run, written["step_seconds"][run.name]) for run in runs},
-            "per_frame": written["per_frame"],
-        }
-    )
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=2, default=str))
+    metrics.update(_finished_metrics(runs, written))
+    write_json(out / "metrics.json", metrics, default=str)
     log(
-        f"{name}: {written['frames'] + 1} frames, {len(runs)} variant(s), build {build_seconds:.1f} s, "
+        f"{name}: {metrics['frames']} frames, {len(runs)} variant(s), build {metrics['build_seconds']:.1f} s, "
         f"{1e3 * breakdown.to_dict()['seconds_per_step'].get('assembly', 0):.1f} ms assembly/step → {out}"
     )
     return metrics
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Render the scenario; exit status 0, 2 for bad input, 1 when writing failed, 130 when interrupted."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # before the render began: nothing to keep
+        print("interrupted before rendering began; nothing was written", file=sys.stderr)
+        return 130
+
+
+def _main(argv: list[str] | None) -> int:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
     )
@@ -227,11 +281,34 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         scenario = load_scenario(args.scenario, smoke=args.smoke)
+        check_output_folder(args.out)
+        if args.cache_dir is not None:
+            check_output_folder(args.cache_dir, "--cache-dir")
         backend.init(args.device)
+    except OutputPathError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    except ScenarioError as error:
+        print(f"error: {error}", file=sys.stderr)  # names the file
+        return 2
+    except ValueError as error:
+        print(f"error: {args.scenario}: {error}", file=sys.stderr)
+        return 2
+    metrics_file, started = args.out / "metrics.json", time.time()
+    try:
         render_scenario(scenario, args.out, cache_dir=args.cache_dir)
+    except KeyboardInterrupt:
+        print(f"interrupted: {metrics_file} holds the frames that finished", file=sys.stderr)
+        return 130
     except (ScenarioError, ValueError) as error:
         print(f"error: {args.scenario}: {error}", file=sys.stderr)
         return 2
+    except OSError as error:
+        full = " (the disk is full)" if error.errno == errno.ENOSPC else ""
+        fresh = metrics_file.is_file() and metrics_file.stat().st_mtime >= started - 1.0
+        kept = f"; {metrics_file} holds the frames that finished" if fresh else ""
+        print(f"error: writing under {args.out} failed{full}: {error}{kept}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -161,7 +161,7 @@ class QGMLSModel:
             lloyd_iterations=config.kernel_lloyd_iterations,
             neighbours=config.support_neighbours, support_scale=config.support_scale,
         )
-        ip_count = min(config.ip_count or 4 * n, position.shape[0])
+        ip_count = min(4 * n if config.ip_count is None else config.ip_count, position.shape[0])
         self.ips: IntegratorPoints = place_integrator_points(
             position, volume, self.kernels.centres, max(ip_count, n),
             lloyd_iterations=config.ip_lloyd_iterations, neighbours=config.cuboid_neighbours,

@@ -371,6 +371,8 @@ def render_rays(
         ``Σ w_i t_i / Σ w_i``, metres; 0 where nothing is hit) and ``samples_per_ray [R]`` (int32, samples
         marched).
     """
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, int) or chunk < 1):
+        raise ValueError(f"chunk must be a positive number of rays or None (one batch), got {chunk!r}")
     c = field.config
     rays = origins.shape[0]
     device = origins.device
@@ -381,7 +383,7 @@ def render_rays(
     near = torch.as_tensor(near, dtype=torch.float32, device=device).expand(rays)
     far = torch.as_tensor(far, dtype=torch.float32, device=device).expand(rays)
     min_step = c.min_step(field.aabb.cpu())
-    step = chunk or max(rays, 1)
+    step = max(rays, 1) if chunk is None else chunk
     parts = []
     for a in range(0, rays, step):
         b = min(a + step, rays)

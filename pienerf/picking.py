@@ -215,7 +215,7 @@ class DragConfig:
 
     def spring(self, young_modulus: float) -> tuple[float, float]:
         """``(k N/m, c N·s/m)`` for a body of Young's modulus ``young_modulus`` (Pa)."""
-        stiffness = self.stiffness or 0.05 * young_modulus
+        stiffness = 0.05 * young_modulus if self.stiffness is None else self.stiffness
         return stiffness, self.damping if self.damping is not None else 0.1 * stiffness
 
 

@@ -1,15 +1,15 @@
 """Reports of a simulation run: the per-step time breakdown (PIE-NeRF Fig. 10) and the volume of the
-body over time (Fig. 6), as numbers and as images."""
+body over time (Fig. 6), as numbers and as images (each written whole or not at all)."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from pienerf.output_files import atomic_path, write_json
 from pienerf.solver import StepReport
 
 __all__ = ["TimeBreakdown", "VolumeHistory", "plot_time_breakdown", "plot_volume_bars"]
@@ -84,9 +84,12 @@ def plot_time_breakdown(breakdown: TimeBreakdown, path: Path | str, title: str =
     ax.pie(values, labels=names, autopct="%1.1f%%", startangle=90, counterclock=False)
     ax.set_title(f"{title}: {per_step_ms:.1f} ms/step over {breakdown.steps} steps")
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
-    path.with_suffix(".json").write_text(json.dumps(breakdown.to_dict(), indent=2))
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary)
+    finally:
+        plt.close(fig)
+    write_json(path.with_suffix(".json"), breakdown.to_dict())
     return path
 
 
@@ -111,8 +114,11 @@ def plot_volume_bars(histories: Sequence[tuple[str, VolumeHistory]], path: Path 
     ax.set_ylim(0.0, 1.2)
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as temporary:
+            fig.savefig(temporary)
+    finally:
+        plt.close(fig)
     data = {name: {"labels": h.labels, "relative_volume": h.relative().tolist()} for name, h in histories}
-    path.with_suffix(".json").write_text(json.dumps(data, indent=2))
+    write_json(path.with_suffix(".json"), data)
     return path

@@ -139,6 +139,8 @@ class SimulationConfig:
     def __post_init__(self):
         if not (self.dt > 0 and math.isfinite(self.dt)):
             raise ValueError(f"dt must be a finite positive number of seconds, got {self.dt!r}")
+        if self.pin_stiffness is not None and not (0 < self.pin_stiffness < math.inf):
+            raise ValueError(f"pin_stiffness must be a finite positive N/m (or None), got {self.pin_stiffness!r}")
         if self.particle_radius is not None and not (0 < self.particle_radius < math.inf):
             raise ValueError(f"particle_radius must be a positive length in metres, got {self.particle_radius!r}")
         if self.scene not in SCENES and not Path(self.scene).is_file():
@@ -313,7 +315,9 @@ class Simulation:
             surface=self._mesh_backend.surface(),
         )
         if getattr(self, "interaction", None) is None:
-            pin_stiffness = self.config.pin_stiffness or 20.0 * E * self.particle_radius
+            pin_stiffness = self.config.pin_stiffness
+            if pin_stiffness is None:
+                pin_stiffness = 20.0 * E * self.particle_radius
             self.interaction = Interaction(drag, pin_stiffness=pin_stiffness)
         else:
             self.interaction.drag = drag

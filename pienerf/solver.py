@@ -81,6 +81,9 @@ class SolverConfig:
             raise ValueError("Rayleigh damping coefficients must be >= 0")
         if self.newton_iterations < 1 or self.line_search_steps < 1:
             raise ValueError("newton_iterations and line_search_steps must be >= 1")
+        if self.contact_stiffness is not None and not self.contact_stiffness > 0:
+            raise ValueError(f"contact_stiffness must be > 0 Pa (or None for 100 × Young's modulus), got "
+                             f"{self.contact_stiffness!r}")
         if self.hessian_updates is not None and self.hessian_updates < 1:
             raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
 
@@ -211,7 +214,9 @@ class SolverQGMLS:
         self.mass_flat = torch.kron(self.mass, torch.eye(3, dtype=torch.float64, device=model.device))
         gravity = model.translation(torch.tensor(self.config.gravity, dtype=torch.float64))
         self.gravity_force = self.mass @ gravity
-        stiffness = self.config.contact_stiffness or 100.0 * material.young_modulus
+        stiffness = self.config.contact_stiffness
+        if stiffness is None:
+            stiffness = 100.0 * material.young_modulus
         self.contact_spring = stiffness * model.volume.pow(1.0 / 3.0)
         self._eye9 = torch.eye(3, dtype=torch.float64, device=model.device).reshape(9)
         self._n = n

@@ -58,6 +58,8 @@ def test_list_names_every_workload(capsys):
         (["--workload", "nope"], "unknown workload 'nope'; valid: "),
         (["--device", "tpu"], "unknown device 'tpu'; valid devices: cpu, cuda"),
         (["--size", "huge"], "unknown size 'huge'; valid: smoke, paper, large"),
+        (["--reps", "0"], "--reps must be between 1 and 10000, got 0"),
+        (["--reps", "1000000000"], "--reps must be between 1 and 10000, got 1000000000"),
     ],
 )
 def test_bad_input_is_one_clear_line(args, message):
@@ -69,3 +71,18 @@ def test_bad_input_is_one_clear_line(args, message):
     lines = [line for line in result.stderr.splitlines() if line.startswith("bench:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
     assert "copy_taichi" in lines[0] or "workload" not in message
+
+
+def test_an_unwritable_json_path_is_refused_before_any_work(tmp_path, capsys):
+    taken = tmp_path / "taken"
+    taken.write_text("a file")
+    for path, message in [
+        (tmp_path, f"--json {tmp_path} is a folder; pass a file path"),
+        (taken / "bench.json", f"--json {taken / 'bench.json'} lies under {taken}, a file, not a folder"),
+    ]:
+        with pytest.raises(SystemExit) as stop:
+            bench.main(["--workload", "copy_torch", "--device", "cpu", "--json", str(path)])
+        assert stop.value.code == 2
+        err = capsys.readouterr().err
+        assert message in err and "copy_torch on" not in err, err
+    assert taken.read_text() == "a file"

@@ -3,16 +3,24 @@ scenarios (the lego, Fig. 8) fit their NeRF into the test's cache and render it 
 
 from __future__ import annotations
 
+import errno
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
+from matplotlib.figure import Figure
 
 from apps import render
 from pienerf import scenario as scenario_module
 
 pytestmark = pytest.mark.data  # the lego scenario reads the lego scene when present
 
+MAX_TINY_FRAMES = 2000  # the interrupted render would take far longer than the test waits
 SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios").glob("*.toml"))
 
 
@@ -121,3 +129,123 @@ def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_p
     metrics = _run(SCENARIOS[0].parent / "lego.toml", tmp_path / "lego", device)
     assert metrics["skipped"].startswith(f"data folder {tmp_path / 'no-data' / 'nerf_synthetic_lego'} is absent")
     assert not (tmp_path / "lego" / "frames").exists()
+
+
+def _tiny_scenario(folder: Path, frames: int = 3, mp4: bool = False) -> Path:
+    """A jelly of six kernels at 24 × 18 px with a volume sample at the start: seconds a frame on a CPU."""
+    path = folder / "tiny.toml"
+    path.write_text(
+        'name = "tiny"\n[scene]\nname = "jelly"\n'
+        "[discretization]\nkernel_count = 6\nparticle_radius = 0.09\nlloyd_iterations = 0\n"
+        f"[solver]\ndt = 0.0333333\nframes = {frames}\n"
+        '[[volume_samples]]\ntime = 0.0\nlabel = "rest"\n'
+        "[cameras]\nwidth = 24\nheight = 18\n"
+        f"[outputs]\nmp4 = {'true' if mp4 else 'false'}\n"
+    )
+    return path
+
+
+def _partial_files(out: Path) -> list[Path]:
+    return [path for path in out.rglob("*") if ".partial" in path.name]
+
+
+def test_output_paths_are_refused_before_any_work(tmp_path, capsys):
+    scenario = _tiny_scenario(tmp_path)
+    taken = tmp_path / "taken"
+    taken.write_text("a file")
+    assert render.main([str(scenario), "--out", str(taken), "--device", "cpu"]) == 2
+    assert f"--out {taken} is a file, not a folder" in capsys.readouterr().err
+    assert render.main([str(scenario), "--out", str(taken / "sub"), "--device", "cpu"]) == 2
+    assert f"--out's parent {taken} is a file" in capsys.readouterr().err
+    assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--cache-dir", str(taken)]) == 2
+    assert f"--cache-dir {taken} is a file" in capsys.readouterr().err
+    assert taken.read_text() == "a file" and not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(os.name != "posix" or os.geteuid() == 0, reason="permissions do not bind this user")
+def test_an_unwritable_out_folder_is_refused_before_any_work(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    try:
+        assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(locked / "out"), "--device", "cpu"]) == 2
+        assert f"cannot write into {locked}" in capsys.readouterr().err
+    finally:
+        locked.chmod(0o700)
+
+
+def _disk_full(*_args, **_kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_a_full_disk_mid_render_keeps_the_finished_frames_in_metrics(device, tmp_path, monkeypatch, capsys):
+    save_png = render._save_png
+    calls = []
+
+    def save_until_full(image, path):
+        calls.append(path)
+        if len(calls) == 3:
+            with render.atomic_path(path) as temporary:
+                temporary.write_bytes(b"\x89PNG\r\n")  # the first bytes, then the disk fills
+                _disk_full()
+        save_png(image, path)
+
+    monkeypatch.setattr(render, "_save_png", save_until_full)
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(out), "--device", device]) == 1
+    error = capsys.readouterr().err
+    assert "(the disk is full)" in error and f"{out / 'metrics.json'} holds the frames that finished" in error
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 2 and "No space left" in metrics["error"] and len(metrics["per_frame"]) == 2
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    assert not (out / "volume_bars.png").exists() and not _partial_files(out)
+
+
+def test_a_full_disk_while_plotting_leaves_no_truncated_chart(device, tmp_path, monkeypatch, capsys):
+    savefig = Figure.savefig
+
+    def fill_the_disk_on_the_bars(figure, path, **options):
+        if "volume_bars" not in Path(path).name:
+            return savefig(figure, path, **options)
+        Path(path).write_bytes(b"\x89PNG\r\n")  # the first bytes, then the disk fills
+        _disk_full()
+
+    monkeypatch.setattr(Figure, "savefig", fill_the_disk_on_the_bars)
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(out), "--device", device]) == 1
+    assert "(the disk is full)" in capsys.readouterr().err
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 4 and "No space left" in metrics["error"]
+    assert not (out / "volume_bars.png").exists() and not _partial_files(out)
+    assert (out / "time_breakdown.png").is_file() and (out / "time_breakdown.json").is_file()
+
+
+def test_ctrl_c_mid_render_writes_what_finished_and_exits_130(tmp_path):
+    out = tmp_path / "out"
+    scenario = _tiny_scenario(tmp_path, frames=MAX_TINY_FRAMES, mp4=True)
+    command = [sys.executable, "-m", "apps.render", str(scenario), "--out", str(out), "--device", "cpu"]
+    root = Path(__file__).resolve().parents[2]
+    process = subprocess.Popen(command, cwd=root, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        second = out / "frames" / "frame_0001.png"
+        deadline = time.monotonic() + 300
+        while not second.exists() and process.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.05)  # polling for the file, not an assertion on time
+        assert second.exists(), f"no second frame: exit status {process.poll()}"
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=300)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130, stderr
+    assert "Traceback" not in stderr and "interrupted:" in stderr and "metrics.json holds the frames" in stderr
+    metrics = json.loads((out / "metrics.json").read_text())
+    finished = metrics["frames"]
+    assert metrics["interrupted"] is True and 2 <= finished < MAX_TINY_FRAMES + 1
+    assert len(metrics["per_frame"]) == finished
+    assert len(list((out / "frames").glob("frame_*.png"))) in (finished, finished + 1)
+    assert not _partial_files(out)
+    import imageio.v2 as imageio
+
+    with imageio.get_reader(out / "video.mp4") as reader:
+        assert reader.count_frames() == finished

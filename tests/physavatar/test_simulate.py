@@ -161,6 +161,8 @@ def test_avatar_simulate_smoke_writes_sequence_video_and_stats(device, tmp_path)
         (["--motion", "dance.txt"], "--motion must be one of walk, turn, raise, jump or a .bvh file"),
         (["--garment", "missing.obj"], "garment file missing.obj does not exist"),
         (["--frames", "0"], "--frames must be at least 1"),
+        (["--frames", "1000000000"], "--frames must be at least 1 and at most 10000, got 1000000000"),
+        (["--frames", "1", "--video-size", "1", "99999"], "got 1 99999; each at most 8192"),
         (["--frames", "1", "--video-size", "0", "0"], "--video-size must be two positive pixel counts W H, got 0 0"),
     ],
 )
