@@ -106,9 +106,18 @@ def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device
         sim = app.simulation
         assert app.render_mode == "mesh" and "nerf" not in sim.render_backends
         app.submit("render mode", lambda: app.viewer._set_render_mode("nerf"))
-        app.paused = True
         app.tick()
-        assert app.render_mode == "nerf" and "nerf" in sim.render_backends and not app.errors
+        assert app.nerf_job is not None and app.render_mode == "mesh", "the NeRF is fitted in the background"
+        assert app.viewer.progress.visible
+        start, ticks = sim.time, 0
+        while app.nerf_job is not None and ticks < 20000:  # the loop steps on while another process fits
+            app.tick()
+            ticks += 1
+        assert not app.errors, app.errors
+        assert app.render_mode == "nerf" and "nerf" in sim.render_backends and not app.viewer.progress.visible
+        assert ticks > 1 and sim.time > start, "the simulation stepped while the NeRF was fitted"
+        assert app.viewer.render_mode.value == "nerf"
+        app.paused = True
         assert not app.viewer.mesh.visible and not app.viewer.ground.visible
         assert app.viewer.nerf_renders == [], "no client, nothing rendered"
 
