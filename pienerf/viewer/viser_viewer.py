@@ -43,8 +43,14 @@ _WARNING_INTERVAL = 5.0  # s between two log lines about malformed messages
 
 
 class _MalformedMessageLog(logging.Filter):
-    """Turns the traceback ``websockets`` logs when viser's handler fails on a malformed message into one line,
-    at most one every few seconds (counting those in between), for the connections of one viser server."""
+    """Turns the tracebacks logged when viser fails on a malformed message into one line, at most one every few
+    seconds (counting those in between).
+
+    viser fails in two places: a message that does not decode ends the client's connection handler, which
+    ``websockets`` logs ("connection handler failed", matched to this server by its port); a message that decodes
+    but carries a value of the wrong type (text for a number) fails in a task of viser's event loop, which
+    ``asyncio`` logs when the task is freed ("Task exception was never retrieved", matched by viser's handler).
+    """
 
     def __init__(self, port: int):
         super().__init__()
@@ -54,22 +60,24 @@ class _MalformedMessageLog(logging.Filter):
         self._last = -float("inf")
 
     def filter(self, record: logging.LogRecord) -> bool:
-        connection = getattr(record, "websocket", None)
-        address = getattr(connection, "local_address", None)
-        if record.getMessage() != "connection handler failed" or not address or address[1] != self.port:
-            return True
+        if record.name == "asyncio":
+            if "WebsockMessageHandler._handle_incoming_message" not in str(record.msg):
+                return True
+            who, what = "a viser client", "dropped a malformed message"
+        else:
+            connection = getattr(record, "websocket", None)
+            address = getattr(connection, "local_address", None)
+            if record.msg != "connection handler failed" or not address or address[1] != self.port:
+                return True
+            who, what = f"viser client {getattr(connection, 'remote_address', '?')}", "closed after a malformed message"
         error = record.exc_info[1] if record.exc_info else None
         self.count += 1
         self._unreported += 1
         now = time.monotonic()
         if now - self._last < _WARNING_INTERVAL:
             return False
-        record.msg = "viser client %s: closed after a malformed message (%d since the last report; last: %s)"
-        record.args = (
-            getattr(connection, "remote_address", "?"),
-            self._unreported,
-            f"{type(error).__name__}: {error}"[:200],
-        )
+        record.msg = "%s: %s (%d since the last report; last: %s)"
+        record.args = (who, what, self._unreported, f"{type(error).__name__}: {error}"[:200])
         record.exc_info, record.exc_text, record.levelno, record.levelname = None, None, logging.WARNING, "WARNING"
         self._last, self._unreported = now, 0
         return True
@@ -100,7 +108,8 @@ class ViserViewer:
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{shown}:{self.port}/"
         self._malformed = _MalformedMessageLog(self.server.get_port())
-        logging.getLogger("websockets.server").addFilter(self._malformed)
+        for name in ("websockets.server", "asyncio"):
+            logging.getLogger(name).addFilter(self._malformed)
         self.app: DemoApp | None = None
         self._gizmo = None
         self._gizmo_sync = False
@@ -394,4 +403,5 @@ class ViserViewer:
     def close(self) -> None:
         self.server.stop()
         self.guard.close()
-        logging.getLogger("websockets.server").removeFilter(self._malformed)
+        for name in ("websockets.server", "asyncio"):
+            logging.getLogger(name).removeFilter(self._malformed)
