@@ -138,6 +138,7 @@ class MeshcatViewer:
         self._target_shown = False
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
+        self.message = ""  # the last one shown
         self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
         self.port, self.url = self.server.port, self.server.url
 
@@ -422,6 +423,7 @@ class MeshcatViewer:
 
     def report(self, message: str) -> None:
         """Show ``message`` in every tab (and on stderr when none is open)."""
+        self.message = message
         self.server.send_json({"type": "message", "text": message}, key="message")
         if not self.server.clients:
             print(message, file=sys.stderr)

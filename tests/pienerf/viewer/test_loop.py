@@ -231,3 +231,15 @@ def test_out_of_range_panel_values_are_refused_in_the_panel(app, caplog):
     viewer.young.value = 2e4  # a good value still goes through after the refusals
     app.tick()
     assert sim.material.young_modulus == 2e4 and "E = 20 kPa" in viewer.message.content
+
+
+def test_status_message_and_time_breakdown_head_the_panel(app):
+    viewer = app.viewer
+    app.tick()
+    top = [viewer.stats, viewer.message, viewer.breakdown]
+    assert "fps" in viewer.stats.content and " ms" in viewer.breakdown.content
+    root = {h._impl.parent_container_id for h in top}
+    assert len(root) == 1, "all three at the panel's top level"
+    others = [viewer.young, viewer.kernels, viewer.release, viewer.render_mode]
+    assert [h.order for h in top] == sorted(h.order for h in top), "status first, then message, breakdown"
+    assert max(h.order for h in top) < min(h.order for h in others), "above every folder's controls"
