@@ -113,6 +113,7 @@ class ViserViewer:
         self.app: DemoApp | None = None
         self._gizmo = None
         self._gizmo_sync = False
+        self._setting = False  # the viewer is setting a GUI value itself
         self.nerf_height = int(nerf_height)
         self.background = torch.tensor(background, dtype=torch.float32)
         self._schedules: dict[int, RefinementSchedule] = {}
@@ -197,6 +198,14 @@ class ViserViewer:
         self._accepted[id(self.render_mode)] = self.render_mode.value
         self.render_mode.on_update(self._refusing(self.render_mode, self._render_mode_chosen))
 
+    def _set_quietly(self, handle, value) -> None:
+        """Show ``value`` in ``handle`` (and accept it) without running its callback."""
+        self._setting = True
+        try:
+            handle.value = self._accepted[id(handle)] = value
+        finally:
+            self._setting = False
+
     @property
     def _material_handles(self) -> tuple:
         return (self.young, self.poisson, self.density, self.model, self.damping, self.gravity)
@@ -206,12 +215,14 @@ class ViserViewer:
         ``handle`` goes back to the value last accepted."""
 
         def callback(_event) -> None:
+            if self._setting:  # the viewer itself set the value (a revert): nothing to translate
+                return
             try:
                 translate(None if handle is None else handle.value)
             except Exception as error:  # any bad value: say so, keep what is in use
                 self.report(f"refused: {error}")
                 if handle is not None and id(handle) in self._accepted:
-                    handle.value = self._accepted[id(handle)]
+                    self._set_quietly(handle, self._accepted[id(handle)])
                 return
             if handle is not None:
                 self._accepted[id(handle)] = handle.value
@@ -283,11 +294,11 @@ class ViserViewer:
         panel) and shown once ready, while the simulation goes on."""
         app = self.app
         if mode == "nerf" and "nerf" not in app.simulation.render_backends:
-            self.render_mode.value = self._accepted[id(self.render_mode)] = app.render_mode  # until it is ready
+            self._set_quietly(self.render_mode, app.render_mode)  # until it is ready
             app.fit_nerf(lambda: self._set_render_mode("nerf"))
             return
         app.render_mode = mode
-        self.render_mode.value = self._accepted[id(self.render_mode)] = mode
+        self._set_quietly(self.render_mode, mode)
         self._show(mode)
         self.report(f"showing the {mode}")
 
