@@ -9,8 +9,11 @@ viser (1.1.1) runs its own ``websockets`` server and offers no option or public 
 :class:`OriginGuard` listens on the viewer's address instead, reads the head of each HTTP request, refuses a
 foreign ``Host`` or ``Origin`` with ``403``, and otherwise relays the connection byte for byte to the viser
 server, which binds an ephemeral loopback port. viser answers each plain HTTP request and closes the connection,
-so every request passes the check. The ephemeral port itself is unguarded: any local program may reach it, as it
-may reach any loopback port, but a web page cannot learn it from the guard.
+so every request passes the check.
+
+Limitation: the ephemeral port itself is unguarded. Nothing of the viewer's tells a page that port, but a page
+that scans the loopback ports can find it and reach viser directly (as can any local program); closing that gap
+needs a header check inside viser's server, which viser does not offer.
 """
 
 from __future__ import annotations

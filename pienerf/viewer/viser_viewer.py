@@ -17,8 +17,9 @@ the first time fits it in a separate process while the simulation goes on (:clas
 Security: viser (1.1.1) offers no hook to check a request's ``Host`` or ``Origin``, so the viser server binds an
 ephemeral loopback port and the viewer's own address is served by a :class:`pienerf.viewer.origin.OriginGuard`,
 which refuses foreign ``Host`` headers (DNS rebinding) and cross-origin websocket upgrades before relaying a
-connection. A malformed message closes that client's connection (viser's behaviour) and is logged as one line,
-at most one every few seconds, instead of a traceback.
+connection. viser's ephemeral port behind the guard stays open to a page that scans the loopback ports for it (the
+limitation is described in :mod:`pienerf.viewer.origin`). A malformed message closes that client's connection
+(viser's behaviour) and is logged as one line, at most one every few seconds, instead of a traceback.
 """
 
 from __future__ import annotations
