@@ -16,20 +16,22 @@ spring of :class:`pienerf.picking.DragController` pulls the body. ``--smoke`` st
 headless and exits 0.
 
 ``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
-``particles`` are drawn by the browser; ``nerf`` is a NeRF of the scene warped by the body's deformation
-(quadratic ray warping, PIE-NeRF Eq. 19–21), rendered on the server from each client's camera and shown as the
-page's background image with its depth. While the body or the camera moves it is rendered at a quarter of the
-resolution, then once at full resolution when still. The NeRF is trained on the scene's own rendered views the
-first time, with progress in the terminal (or in the panel when switched on there; the simulation waits), and
-cached as a checkpoint under the scene cache (``--cache-dir``, default ``$PIE_CACHE_DIR`` or
-``~/.cache/pie-physavatar``), so later starts load it; ``--nerf-checkpoint`` loads a given one instead (trained in
-the scene's coordinates). The default stays ``mesh``: on a CPU the first fit takes longer than a start may take
-(figures in ``docs/benchmarks.md``); later starts load the cached checkpoint. In viser's NeRF mode the body is picked
-by clicking (the mouse-drag handle belongs to the hidden mesh).
+``particles`` are drawn by the browser; ``nerf`` is a NeRF of the scene warped by the body's deformation (quadratic
+ray warping, PIE-NeRF Eq. 19–21), rendered on the server from each client's camera and shown as the page's
+background image with its depth. While the body or the camera moves it is rendered at a quarter of the resolution,
+then once at full resolution when still. The NeRF is trained on the scene's own rendered views the first time, with
+progress in the terminal (or, when switched on in the panel, in a separate process while the simulation goes on,
+with progress in the panel), and cached as a checkpoint under the scene cache (``--cache-dir``, default
+``$PIE_CACHE_DIR`` or ``~/.cache/pie-physavatar``), so later starts load it; ``--nerf-checkpoint`` loads a given one
+instead (trained in the scene's coordinates). The default stays ``mesh``: on a CPU the first fit takes longer than a
+start may take (figures in ``docs/benchmarks.md``); later starts load the cached checkpoint. In viser's NeRF mode
+the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
-on, and a client that disconnects only leaves its GUI behind. This program parses the flags and starts it.
+on, and a client that disconnects only leaves its GUI behind. A bad ``--host`` or ``--port`` (outside 0..65535) is
+refused before anything starts; a port in use stops the start with a message naming it. This program parses the
+flags and starts it.
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from kernels import backend
 from pienerf.cameras import orbit_cameras
 from pienerf.viewer import RENDER_MODES, VIEWERS, build_app
+from pienerf.viewer.origin import check_address
 
 
 class _TerminalProgress:
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
-    parser.add_argument("--port", type=int, default=8080)
+    parser.add_argument("--port", type=int, default=8080, help="TCP port, 0..65535 (0 picks a free one)")
     parser.add_argument("--viewer", choices=VIEWERS, default="meshcat")
     parser.add_argument("--smoke", action="store_true", help="start, run a few steps headless, exit")
     parser.add_argument(
@@ -84,6 +87,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--nerf-checkpoint", default=None, help="a trained NeRF checkpoint to render instead")
     parser.add_argument("--cache-dir", default=None, help="cache of scene renders and NeRF checkpoints")
     args = parser.parse_args(argv)
+    try:
+        check_address(args.host, args.port)
+    except ValueError as error:
+        parser.error(str(error))
     backend.init(args.device)
     try:
         with _TerminalProgress() as progress:
@@ -98,12 +105,12 @@ def main(argv: list[str] | None = None) -> int:
                 args.cache_dir,
                 progress,
             )
-    except (ValueError, FileNotFoundError) as error:
-        print(f"error: {error}", file=sys.stderr)
+    except (ValueError, OSError) as error:  # a bad scene or value, a missing file, a port in use
+        print(f"error: {error.strerror if isinstance(error, OSError) and error.strerror else error}", file=sys.stderr)
         return 2
     if args.smoke:
         app.run(steps=3)
-        app.viewer.close()
+        app.close()
         print(f"smoke: 3 steps of {args.scene}, t = {app.simulation.time:.3f} s")
         if args.render != "mesh":
             sim = app.simulation
@@ -119,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         pass
     finally:
-        app.viewer.close()
+        app.close()
     return 0
 
 

@@ -4,7 +4,8 @@
   :class:`~pienerf.viewer.loop.DemoApp`, the command queue and simulation loop;
 * :mod:`pienerf.viewer.viser_viewer`: the viser front end;
 * :mod:`pienerf.viewer.meshcat_viewer` (with :mod:`pienerf.viewer.meshcat_server` and the page in ``web/``): the
-  meshcat front end, the default.
+  meshcat front end, the default;
+* :mod:`pienerf.viewer.origin`: address checks, and the guard that refuses foreign ``Host`` and ``Origin`` headers.
 
 :func:`build_app` puts a scene's simulation behind the chosen front end.
 """
@@ -14,6 +15,7 @@ from __future__ import annotations
 from pienerf.session import Simulation, SimulationConfig
 from pienerf.viewer.loop import RENDER_MODES, DemoApp, load_nerf, smoke_fit
 from pienerf.viewer.meshcat_viewer import MeshcatViewer
+from pienerf.viewer.origin import check_address
 from pienerf.viewer.viser_viewer import ViserViewer
 
 __all__ = ["RENDER_MODES", "SMOKE", "VIEWERS", "DemoApp", "build_app"]
@@ -39,15 +41,22 @@ def build_app(
     """The simulation of ``scene`` behind the chosen viewer, showing ``render`` (:data:`RENDER_MODES`).
 
     With ``render="nerf"`` the NeRF is loaded from ``nerf_checkpoint`` or fitted to the scene (a few-second fit
-    with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up.
+    with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up. A bad ``host`` or
+    ``port`` raises ValueError, a port in use OSError, before the simulation is built.
     """
+    check_address(host, port)  # before the simulation is built
     if viewer_name not in VIEWERS:
         raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
-    simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
-    nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
-    if render == "nerf":
-        load_nerf(simulation, progress=progress, **nerf_options)
+    # The viewer first: a port in use is reported before the simulation is built.
     viewer = ViserViewer(host, port) if viewer_name == "viser" else MeshcatViewer(host, port)
-    return DemoApp(simulation, viewer, render, nerf_options)
+    try:
+        simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
+        nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
+        if render == "nerf":
+            load_nerf(simulation, progress=progress, **nerf_options)
+        return DemoApp(simulation, viewer, render, nerf_options)
+    except BaseException:
+        viewer.close()
+        raise

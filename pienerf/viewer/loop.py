@@ -8,6 +8,7 @@ message, a bad value) is reported to the viewer and the loop goes on.
 
 from __future__ import annotations
 
+import multiprocessing
 import queue
 import threading
 import time
@@ -16,6 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
+from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf import NGPConfig
 from pienerf.nerf_fit import NerfFit, scene_nerf
@@ -24,10 +26,49 @@ from pienerf.scenes import SCENES
 from pienerf.session import Simulation
 from pienerf.train import TrainConfig, load_checkpoint
 
-__all__ = ["RENDER_MODES", "DemoApp", "Viewer", "load_nerf", "smoke_fit", "vector3"]
+__all__ = [
+    "CONTROL_RANGES",
+    "RENDER_MODES",
+    "DemoApp",
+    "NerfJob",
+    "Viewer",
+    "control_value",
+    "load_nerf",
+    "si_text",
+    "smoke_fit",
+    "vector3",
+]
 
 RENDER_MODES = ("mesh", "particles", "nerf")
 """What the viewer can show: the browser's mesh, the browser's particles, or the server's warped-NeRF image."""
+
+
+CONTROL_RANGES = {
+    "young_modulus": (1.0e2, 1.0e9),
+    "poisson_ratio": (0.0, 0.49),
+    "density": (10.0, 2.0e4),
+    "damping": (0.0, 100.0),
+    "gravity": (0.0, 100.0),
+    "kernel_count": (4, 4096),
+}
+"""Values a page may set, name -> (lowest, highest): Young's modulus (Pa), Poisson ratio, density (kg/m³),
+Rayleigh damping α (1/s), gravity's magnitude along -y (m/s²) and the kernel count of a re-sampling."""
+
+
+def control_value(name: str, value) -> float:
+    """``value`` of the control ``name`` (:data:`CONTROL_RANGES`) as a float, or a ValueError naming the range."""
+    lo, hi = CONTROL_RANGES[name]
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+        raise ValueError(f"{name.replace('_', ' ')} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
+    return float(value)
+
+
+def si_text(value: float, unit: str) -> str:
+    """A value for people to read: ``20000, "Pa"`` -> ``"20 kPa"``."""
+    for factor, prefix in ((1e9, "G"), (1e6, "M"), (1e3, "k")):
+        if abs(value) >= factor:
+            return f"{value / factor:.3g} {prefix}{unit}"
+    return f"{value:.3g} {unit}"
 
 
 def vector3(value, what: str) -> np.ndarray:
@@ -73,6 +114,77 @@ def load_nerf(
     return simulation.add_nerf_render(trained.field, trained.grid)
 
 
+def _fit_in_child(scene: str, fit, cache_dir: str | None, device: str, messages) -> None:
+    """The body of a :class:`NerfJob`'s process: fit (or load) the scene's NeRF into the cache, reporting."""
+    backend.init(device)
+    try:
+        scene_nerf(scene, fit or NerfFit(), cache_dir, lambda stage, fraction: messages.put((stage, fraction)))
+    except Exception as error:  # reported to the parent, which shows it
+        messages.put((f"{type(error).__name__}: {error}", None))
+        return
+    messages.put(("", 1.0))
+
+
+class NerfJob:
+    """The fit of an embedded scene's NeRF (:func:`pienerf.nerf_fit.scene_nerf`) in a separate process.
+
+    The process writes the checkpoint to the scene cache, where :func:`load_nerf` then finds it. :meth:`poll`
+    never blocks.
+
+    Args:
+        scene: one of :data:`pienerf.scenes.SCENES`.
+        fit: the fitting settings (default :class:`pienerf.nerf_fit.NerfFit`).
+        cache_dir: the cache root (as :func:`pienerf.nerf_fit.scene_nerf`).
+        device: where the process fits (default: this process's device).
+
+    Attributes:
+        finished: the process has ended.
+        error: why it failed, or ``None``.
+    """
+
+    def __init__(self, scene: str, fit=None, cache_dir: str | None = None, device: str | None = None):
+        if scene not in SCENES:
+            raise ValueError(f"no NeRF can be fitted to {scene!r}: embedded scenes are {', '.join(SCENES)}")
+        context = multiprocessing.get_context("spawn")  # a fresh interpreter: Taichi and torch state are per process
+        self._messages = context.Queue()
+        device = device or backend.current_device() or backend.default_device()
+        self._process = context.Process(
+            target=_fit_in_child, args=(scene, fit, cache_dir, device, self._messages), daemon=True
+        )
+        self._process.start()
+        self.finished = False
+        self.error: str | None = None
+
+    def poll(self) -> list[tuple[str, float]]:
+        """Progress reported since the last call, as ``(stage, fraction)``; sets :attr:`finished` and :attr:`error`."""
+        updates = []
+        alive = self._process.is_alive()
+        while True:
+            try:
+                stage, fraction = self._messages.get_nowait()
+            except queue.Empty:
+                break
+            if fraction is None:
+                self.error, self.finished = stage, True
+            elif stage == "" and fraction == 1.0:
+                self.finished = True
+            else:
+                updates.append((stage, fraction))
+        if not alive and not self.finished:
+            self.finished = True
+            self.error = f"the fitting process ended with exit code {self._process.exitcode}"
+        if self.finished:
+            self._process.join(5.0)
+        return updates
+
+    def cancel(self) -> None:
+        """Stop the process (a partly written checkpoint is never left: the fit saves atomically)."""
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(5.0)
+        self.finished = True
+
+
 class Viewer(Protocol):
     """What the demo loop needs from a display."""
 
@@ -81,6 +193,9 @@ class Viewer(Protocol):
     def update(self, app: DemoApp) -> None: ...
 
     def report(self, message: str) -> None: ...
+
+    def show_progress(self, stage: str, fraction: float | None) -> None:
+        """Show the progress of slow work (``fraction`` in [0, 1]), or hide it (``None``)."""
 
     def close(self) -> None: ...
 
@@ -108,6 +223,8 @@ class DemoApp:
         self.paused = False
         self.fps = 0.0
         self.errors: list[str] = []
+        self.nerf_job: NerfJob | None = None
+        self._nerf_ready: Callable[[], object] | None = None
         viewer.attach(self)
 
     def submit(self, what: str, command: Callable[[], object]) -> None:
@@ -120,12 +237,59 @@ class DemoApp:
                 what, command = self.commands.get_nowait()
             except queue.Empty:
                 return
-            try:
-                command()
-            except Exception as error:  # a bad request must not stop the loop
-                message = f"{what} failed: {error}"
-                self.errors.append(message)
-                self.viewer.report(message)
+            self._run(what, command)
+
+    def _run(self, what: str, command: Callable[[], object]) -> None:
+        try:
+            command()
+        except Exception as error:  # a bad request must not stop the loop
+            message = f"{what} failed: {error}"
+            self.errors.append(message)
+            self.viewer.report(message)
+
+    def fit_nerf(self, then: Callable[[], object]) -> None:
+        """Make the ``"nerf"`` render mode available, then call ``then`` (in the loop thread).
+
+        A given checkpoint, or one already loaded, is used at once. Otherwise the scene's NeRF is fitted (or loaded
+        from the cache) by a :class:`NerfJob` while the loop goes on stepping; ``then`` runs once it is loaded.
+        """
+        sim = self.simulation
+        if "nerf" in sim.render_backends or self.nerf_options.get("checkpoint") is not None:
+            load_nerf(sim, **self.nerf_options)
+            then()
+            return
+        if self.nerf_job is not None:
+            raise ValueError("the NeRF is already being fitted (see the progress bar); it shows when ready")
+        if sim.config.scene not in SCENES:
+            load_nerf(sim, **self.nerf_options)  # raises with the fix for a mesh scene
+        options = self.nerf_options
+        self.nerf_job = NerfJob(sim.config.scene, options.get("fit"), options.get("cache_dir"))
+        self._nerf_ready = then
+        self.viewer.show_progress("NeRF: starting the fit", 0.0)
+        self.viewer.report("fitting the NeRF in the background; the simulation goes on")
+
+    def _poll_nerf(self) -> None:
+        job = self.nerf_job
+        if job is None:
+            return
+        for stage, fraction in job.poll():
+            self.viewer.show_progress(f"NeRF: {stage}", fraction)
+        if not job.finished:
+            return
+        self.nerf_job, then = None, self._nerf_ready
+        self.viewer.show_progress("", None)
+        if job.error is not None:
+            self.errors.append(f"NeRF fit failed: {job.error}")
+            self.viewer.report(self.errors[-1])
+            return
+        self._run("NeRF load", lambda: (load_nerf(self.simulation, **self.nerf_options), then()))
+
+    def close(self) -> None:
+        """Stop a fit in progress and close the viewer."""
+        if self.nerf_job is not None:
+            self.nerf_job.cancel()
+            self.nerf_job = None
+        self.viewer.close()
 
     def click(self, ray_origin, ray_direction) -> None:
         """A click: pick when nothing is picked, else move the drag target onto this ray at the picked depth."""
@@ -138,8 +302,9 @@ class DemoApp:
             self.viewer.report("picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3)}")
 
     def tick(self) -> None:
-        """One frame: commands, one step unless paused, display."""
+        """One frame: commands, the progress of a background fit, one step unless paused, display."""
         self.run_commands()
+        self._poll_nerf()
         start = time.perf_counter()
         if not self.paused:
             self.simulation.step()
@@ -156,4 +321,3 @@ class DemoApp:
             count += 1
             if steps is None:
                 self.stop.wait(max(0.0, frame_seconds - (time.perf_counter() - start)))
-

@@ -35,10 +35,11 @@ from pathlib import Path
 import meshcat
 import tornado.httpserver
 import tornado.ioloop
-import tornado.netutil
 import tornado.web
 import tornado.websocket
 import umsgpack
+
+from pienerf.viewer.origin import allowed_hosts, bind_socket
 
 __all__ = ["MAX_MESSAGE_BYTES", "MeshcatServer"]
 
@@ -47,7 +48,6 @@ MAX_MESSAGE_BYTES = 1 << 20
 
 _LOG = logging.getLogger(__name__)
 _WARNING_INTERVAL = 5.0  # s between two log lines about one client's dropped messages
-_LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
 def _read_web_file(name: str) -> bytes:
@@ -123,7 +123,8 @@ class MeshcatServer:
 
     Args:
         host: address to bind (default loopback only).
-        port: TCP port; 0 picks a free one (see :attr:`port`).
+        port: TCP port; 0 picks a free one (see :attr:`port`). A bad address raises ValueError, a port in use
+            OSError, both naming the fix.
         on_message: ``on_message(client, message)`` with a page's JSON object (a dict with a ``"type"``), called
             on the server's thread; raise ``ValueError`` to have the message dropped and counted.
         on_open: ``on_open(client)`` when a tab connects (after it received the remembered scene).
@@ -146,12 +147,11 @@ class MeshcatServer:
         self._clients: dict[int, _Client] = {}
         self._count = 0
         self._scene: dict[str, tuple[bool, bytes | str]] = {}  # key -> (binary, frame), latest per key
-        sockets = tornado.netutil.bind_sockets(port, address=host)
-        self.host, self.port = host, sockets[0].getsockname()[1]
-        names = {host, *_LOOPBACK} if host in _LOOPBACK else {host}
-        self.allowed_hosts = frozenset(
-            f"[{name}]:{self.port}" if ":" in name else f"{name}:{self.port}" for name in names
-        )
+        listening = bind_socket(host, port)  # checks the address; a port in use says so
+        listening.setblocking(False)
+        sockets = [listening]
+        self.host, self.port = host, listening.getsockname()[1]
+        self.allowed_hosts = allowed_hosts(host, self.port)
         self.allowed_origins = frozenset(f"http://{name}" for name in self.allowed_hosts)
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{shown}:{self.port}/"

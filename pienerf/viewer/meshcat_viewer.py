@@ -42,7 +42,7 @@ from PIL import Image
 
 from pienerf.data import Cameras
 from pienerf.preview import RefinementSchedule
-from pienerf.viewer.loop import RENDER_MODES, load_nerf
+from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, si_text
 from pienerf.viewer.meshcat_server import MeshcatServer
 
 __all__ = ["Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
@@ -54,13 +54,7 @@ _ROOT = ("pienerf",)
 _BODY = Path((*_ROOT, "body"))
 _PARTICLES = Path((*_ROOT, "particles"))
 _TARGET = Path((*_ROOT, "drag_target"))
-_CONTROLS = {  # name -> (lowest, highest) accepted value
-    "young_modulus": (1.0e2, 1.0e9),
-    "poisson_ratio": (0.0, 0.49),
-    "density": (10.0, 2.0e4),
-    "damping": (0.0, 100.0),
-    "gravity": (0.0, 100.0),
-}
+_CONTROLS = tuple(name for name in CONTROL_RANGES if name != "kernel_count")
 _BUTTONS = ("release", "pin", "push", "cut", "reset")
 _TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
 
@@ -123,14 +117,6 @@ def _vertices_command(path: Path, positions: np.ndarray) -> dict:
     return {"type": "set_vertices", "path": path.lower(), "positions": umsgpack.Ext(0x17, data.tobytes())}
 
 
-def _si(value: float, unit: str) -> str:
-    """``20000, "Pa"`` -> ``"20 kPa"``."""
-    for factor, prefix in ((1e9, "G"), (1e6, "M"), (1e3, "k"), (1.0, "")):
-        if abs(value) >= factor:
-            return f"{value / factor:.3g} {prefix}{unit}"
-    return f"{value:.3g} {unit}"
-
-
 class MeshcatViewer:
     """The meshcat page of the demo: the deformed body, the controls, pointer drags and the NeRF view.
 
@@ -152,6 +138,7 @@ class MeshcatViewer:
         self._target_shown = False
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
+        self.message = ""  # the last one shown
         self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
         self.port, self.url = self.server.port, self.server.url
 
@@ -256,9 +243,9 @@ class MeshcatViewer:
             with self._lock:
                 self._cameras[client] = (tuple(view[0]), float(view[1]), float(view[2]))
         elif kind == "set":
-            self._set(message.get("name"), message.get("value"))
+            self._checked(self._set, message.get("name"), message.get("value"))
         elif kind == "resample":
-            count = int(_number(message.get("kernel_count"), "kernel count", 4, 4096))
+            count = int(self._checked(control_value, "kernel_count", message.get("kernel_count")))
             app.submit("resample", lambda: self._resample(count))
         elif kind == "release":
             app.submit("release", sim.release)
@@ -271,6 +258,16 @@ class MeshcatViewer:
         else:
             app.submit("reset", self._reset)
 
+    def _checked(self, translate, *args):
+        """``translate(*args)``; a ValueError is shown in the page (the controls go back to the values in use) and
+        raised on, so the server drops and counts the message."""
+        try:
+            return translate(*args)
+        except ValueError as error:
+            self.report(f"refused: {error}")
+            self._send_controls()
+            raise
+
     def _set(self, name, value) -> None:
         app, sim = self.app, self.app.simulation
         if name == "model":
@@ -282,7 +279,7 @@ class MeshcatViewer:
                 raise ValueError(f"unknown render mode {str(value)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
             app.submit("render mode", lambda: self._set_render_mode(value))
         elif name in _CONTROLS:
-            number = _number(value, name, *_CONTROLS[name])
+            number = control_value(name, value)
             changes = {"gravity": (0.0, -number, 0.0)} if name == "gravity" else {name: number}
             app.submit(name.replace("_", " "), lambda: self._set_material(**changes))
         else:
@@ -328,7 +325,7 @@ class MeshcatViewer:
         material = self.app.simulation.set_material(**changes)
         self._send_controls()
         name, value = next(iter(changes.items()))
-        shown = {"young_modulus": lambda v: _si(v, "Pa"), "gravity": lambda v: f"{-v[1]:.3g} m/s²"}
+        shown = {"young_modulus": lambda v: si_text(v, "Pa"), "gravity": lambda v: f"{-v[1]:.3g} m/s²"}
         self.report(f"{name.replace('_', ' ')} = {shown.get(name, str)(value)} ({material.model})")
 
     def _resample(self, kernel_count: int) -> None:
@@ -338,28 +335,22 @@ class MeshcatViewer:
         self.report(f"resampled with {sim.model.basis.kernel_count} kernels")
 
     def _after_rebuild(self, sim) -> None:
-        self.server.send_json({"type": "progress", "stage": "", "fraction": None}, key="progress")
+        self.show_progress("", None)
         if sim.particle_positions().shape[0] != self._particle_count:
             self._send_particles(sim)
         self._send_controls()
 
     def _progress(self, what: str):
-        def progress(stage: str, fraction: float) -> None:
-            self.server.send_json(
-                {"type": "progress", "stage": f"{what}: {stage}", "fraction": fraction}, key="progress"
-            )
-
-        return progress
+        return lambda stage, fraction: self.show_progress(f"{what}: {stage}", fraction)
 
     def _set_render_mode(self, mode: str) -> None:
-        """Switch what the page shows; the NeRF is loaded (or trained, with progress in the page) the first time."""
+        """Switch what the page shows; the first time, the NeRF is fitted in the background (progress in the page)
+        and shown once ready, while the simulation goes on."""
         app = self.app
         if mode == "nerf" and "nerf" not in app.simulation.render_backends:
-            try:
-                load_nerf(app.simulation, progress=self._progress("NeRF"), **app.nerf_options)
-            finally:
-                self.server.send_json({"type": "progress", "stage": "", "fraction": None}, key="progress")
-                self._send_controls()
+            self._send_controls()  # the menu shows the mode in use until the NeRF is ready
+            app.fit_nerf(lambda: self._set_render_mode("nerf"))
+            return
         app.render_mode = mode
         self._show(mode)
         self._send_controls()
@@ -428,8 +419,13 @@ class MeshcatViewer:
             self.nerf_renders.append(level)
             self.last_nerf_image = image
 
+    def show_progress(self, stage: str, fraction: float | None) -> None:
+        """The page's progress bar at ``fraction`` with ``stage``, or hidden (``None``)."""
+        self.server.send_json({"type": "progress", "stage": stage, "fraction": fraction}, key="progress")
+
     def report(self, message: str) -> None:
         """Show ``message`` in every tab (and on stderr when none is open)."""
+        self.message = message
         self.server.send_json({"type": "message", "text": message}, key="message")
         if not self.server.clients:
             print(message, file=sys.stderr)

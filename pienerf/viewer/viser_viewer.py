@@ -10,27 +10,86 @@ rendered from its own camera as the page's background image with its depth, coar
 once still (:class:`pienerf.preview.RefinementSchedule`).
 
 Every event becomes a command of the :class:`pienerf.viewer.loop.DemoApp`; this module holds no simulation logic.
+Every value from the page is range-checked as it arrives (:func:`pienerf.viewer.loop.control_value`); a bad one is
+refused with a message at the top of the panel and the control goes back to the value in use. Switching to the NeRF
+the first time fits it in a separate process while the simulation goes on (:class:`pienerf.viewer.loop.NerfJob`).
+
+Security: viser (1.1.1) offers no hook to check a request's ``Host`` or ``Origin``, so the viser server binds an
+ephemeral loopback port and the viewer's own address is served by a :class:`pienerf.viewer.origin.OriginGuard`,
+which refuses foreign ``Host`` headers (DNS rebinding) and cross-origin websocket upgrades before relaying a
+connection. viser's ephemeral port behind the guard stays open to a page that scans the loopback ports for it (the
+limitation is described in :mod:`pienerf.viewer.origin`). A malformed message closes that client's connection
+(viser's behaviour) and is logged as one line, at most one every few seconds, instead of a traceback.
 """
 
 from __future__ import annotations
 
-import math
+import contextlib
+import io
+import logging
+import time
 
 import numpy as np
 import torch
 
 from pienerf.cameras import viser_cameras
 from pienerf.preview import RefinementSchedule
-from pienerf.viewer.loop import RENDER_MODES, DemoApp, load_nerf, vector3
+from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, DemoApp, control_value, si_text, vector3
+from pienerf.viewer.origin import OriginGuard, check_address
 
 __all__ = ["ViserViewer"]
+
+_LOG = logging.getLogger(__name__)
+_WARNING_INTERVAL = 5.0  # s between two log lines about malformed messages
+
+
+class _MalformedMessageLog(logging.Filter):
+    """Turns the tracebacks logged when viser fails on a malformed message into one line, at most one every few
+    seconds (counting those in between).
+
+    viser fails in two places: a message that does not decode ends the client's connection handler, which
+    ``websockets`` logs ("connection handler failed", matched to this server by its port); a message that decodes
+    but carries a value of the wrong type (text for a number) fails in a task of viser's event loop, which
+    ``asyncio`` logs when the task is freed ("Task exception was never retrieved", matched by viser's handler).
+    """
+
+    def __init__(self, port: int):
+        super().__init__()
+        self.port = port
+        self.count = 0
+        self._unreported = 0
+        self._last = -float("inf")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.name == "asyncio":
+            if "WebsockMessageHandler._handle_incoming_message" not in str(record.msg):
+                return True
+            who, what = "a viser client", "dropped a malformed message"
+        else:
+            connection = getattr(record, "websocket", None)
+            address = getattr(connection, "local_address", None)
+            if record.msg != "connection handler failed" or not address or address[1] != self.port:
+                return True
+            who, what = f"viser client {getattr(connection, 'remote_address', '?')}", "closed after a malformed message"
+        error = record.exc_info[1] if record.exc_info else None
+        self.count += 1
+        self._unreported += 1
+        now = time.monotonic()
+        if now - self._last < _WARNING_INTERVAL:
+            return False
+        record.msg = "%s: %s (%d since the last report; last: %s)"
+        record.args = (who, what, self._unreported, f"{type(error).__name__}: {error}"[:200])
+        record.exc_info, record.exc_text, record.levelno, record.levelname = None, None, logging.WARNING, "WARNING"
+        self._last, self._unreported = now, 0
+        return True
 
 
 class ViserViewer:
     """The browser viewer: a viser server with the scene, the controls panel and click-to-drag.
 
     Args:
-        host, port: where the page is served.
+        host, port: where the page is served (port 0 picks a free one, see :attr:`port`); a bad address raises
+            ValueError, a port in use OSError, both naming the fix.
         nerf_height: height in pixels of the NeRF images rendered for each client (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
     """
@@ -38,11 +97,24 @@ class ViserViewer:
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
         import viser  # deferred: the optional browser viewer
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=False)
-        self.port = self.server.get_port()
+        check_address(host, port)
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own, unguarded, address
+            self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        try:
+            self.guard = OriginGuard(host, port, self.server.get_port())
+        except Exception:
+            self.server.stop()
+            raise
+        self.port = self.guard.port
+        shown = f"[{host}]" if ":" in host else host
+        self.url = f"http://{shown}:{self.port}/"
+        self._malformed = _MalformedMessageLog(self.server.get_port())
+        for name in ("websockets.server", "asyncio"):
+            logging.getLogger(name).addFilter(self._malformed)
         self.app: DemoApp | None = None
         self._gizmo = None
         self._gizmo_sync = False
+        self._setting = False  # the viewer is setting a GUI value itself
         self.nerf_height = int(nerf_height)
         self.background = torch.tensor(background, dtype=torch.float32)
         self._schedules: dict[int, RefinementSchedule] = {}
@@ -87,8 +159,13 @@ class ViserViewer:
     def _build_gui(self, app: DemoApp) -> None:
         gui, sim = self.server.gui, app.simulation
         material = sim.material
+        # Status first, so the frame rate, the last message and the time breakdown show without scrolling.
+        self.stats = gui.add_markdown("starting")
+        self.message = gui.add_markdown("click the body to pick, click again to drag")
+        self.breakdown = gui.add_markdown("")
         with gui.add_folder("Material"):
-            self.young = gui.add_slider("Young's modulus log10(Pa)", 3.0, 7.0, 0.1, math.log10(material.young_modulus))
+            lo, hi = CONTROL_RANGES["young_modulus"]
+            self.young = gui.add_number("Young's modulus (Pa)", material.young_modulus, min=lo, max=hi, step=1.0)
             self.poisson = gui.add_slider("Poisson ratio", 0.0, 0.49, 0.01, material.poisson_ratio)
             self.density = gui.add_slider("density (kg/m³)", 100.0, 3000.0, 50.0, material.density)
             self.model = gui.add_dropdown("model", sim.material_models, initial_value=material.model)
@@ -109,23 +186,10 @@ class ViserViewer:
             self.show_mesh = gui.add_checkbox("mesh", True)
             self.show_particles = gui.add_checkbox("particles", False)
             self.show_ips = gui.add_checkbox("kernels and integrator points", False)
-        self.stats = gui.add_markdown("starting")
-        self.message = gui.add_markdown("click the body to pick, click again to drag")
-
-        def material_changed(_event) -> None:
-            values = dict(
-                young_modulus=10.0**self.young.value,
-                poisson_ratio=self.poisson.value,
-                density=self.density.value,
-                model=self.model.value,
-                damping=self.damping.value,
-                gravity=(0.0, -self.gravity.value, 0.0),
-            )
-            app.submit("material change", lambda: sim.set_material(**values))
-
-        for handle in (self.young, self.poisson, self.density, self.model, self.damping, self.gravity):
-            handle.on_update(material_changed)
-        self.resample.on_click(lambda _e: app.submit("resample", lambda: self._resample(int(self.kernels.value))))
+        self._accepted = {id(handle): handle.value for handle in self._material_handles}
+        for handle in self._material_handles:
+            handle.on_update(self._refusing(handle, self._material_changed))
+        self.resample.on_click(self._refusing(None, self._resample_clicked))
         self.release.on_click(lambda _e: app.submit("release", self._release))
         self.pin.on_click(lambda _e: app.submit("pin", sim.pin_picked))
         self.push.on_click(lambda _e: app.submit("force", self._push))
@@ -134,9 +198,66 @@ class ViserViewer:
         self.show_mesh.on_update(lambda _e: setattr(self.mesh, "visible", self.show_mesh.value))
         self.show_particles.on_update(lambda _e: setattr(self.particles, "visible", self.show_particles.value))
         self.show_ips.on_update(lambda _e: setattr(self.ips, "visible", self.show_ips.value))
-        self.render_mode.on_update(
-            lambda _e: app.submit("render mode", lambda mode=self.render_mode.value: self._set_render_mode(mode))
+        self._accepted[id(self.render_mode)] = self.render_mode.value
+        self.render_mode.on_update(self._refusing(self.render_mode, self._render_mode_chosen))
+
+    def _set_quietly(self, handle, value) -> None:
+        """Show ``value`` in ``handle`` (and accept it) without running its callback."""
+        self._setting = True
+        try:
+            handle.value = self._accepted[id(handle)] = value
+        finally:
+            self._setting = False
+
+    @property
+    def _material_handles(self) -> tuple:
+        return (self.young, self.poisson, self.density, self.model, self.damping, self.gravity)
+
+    def _refusing(self, handle, translate):
+        """A GUI callback that runs ``translate(value)``; a bad value is refused with a message in the panel and
+        ``handle`` goes back to the value last accepted."""
+
+        def callback(_event) -> None:
+            if self._setting:  # the viewer itself set the value (a revert): nothing to translate
+                return
+            try:
+                translate(None if handle is None else handle.value)
+            except Exception as error:  # any bad value: say so, keep what is in use
+                self.report(f"refused: {error}")
+                if handle is not None and id(handle) in self._accepted:
+                    self._set_quietly(handle, self._accepted[id(handle)])
+                return
+            if handle is not None:
+                self._accepted[id(handle)] = handle.value
+
+        return callback
+
+    def _material_changed(self, _value) -> None:
+        models = self.app.simulation.material_models
+        if self.model.value not in models:
+            raise ValueError(f"unknown material model {str(self.model.value)[:40]!r}; valid: {', '.join(models)}")
+        values = dict(
+            young_modulus=control_value("young_modulus", self.young.value),
+            poisson_ratio=control_value("poisson_ratio", self.poisson.value),
+            density=control_value("density", self.density.value),
+            model=self.model.value,
+            damping=control_value("damping", self.damping.value),
+            gravity=(0.0, -control_value("gravity", self.gravity.value), 0.0),
         )
+        self.app.submit("material change", lambda: self._set_material(values))
+
+    def _set_material(self, values: dict) -> None:
+        material = self.app.simulation.set_material(**values)
+        self.report(f"E = {si_text(material.young_modulus, 'Pa')}, ν = {material.poisson_ratio:.3g} ({material.model})")
+
+    def _resample_clicked(self, _value) -> None:
+        count = int(control_value("kernel_count", self.kernels.value))
+        self.app.submit("resample", lambda: self._resample(count))
+
+    def _render_mode_chosen(self, mode) -> None:
+        if mode not in RENDER_MODES:
+            raise ValueError(f"unknown render mode {str(mode)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
+        self.app.submit("render mode", lambda: self._set_render_mode(mode))
 
     # -- events ----------------------------------------------------------------------------------
 
@@ -172,23 +293,15 @@ class ViserViewer:
         client.camera.look_at = centre
 
     def _set_render_mode(self, mode: str) -> None:
-        """Switch what the page shows; the NeRF is loaded (or trained, with progress in the panel) the first time."""
+        """Switch what the page shows; the first time, the NeRF is fitted in the background (progress in the
+        panel) and shown once ready, while the simulation goes on."""
         app = self.app
         if mode == "nerf" and "nerf" not in app.simulation.render_backends:
-            self.progress.visible = True
-
-            def progress(stage: str, fraction: float) -> None:
-                self.progress.value = 100.0 * fraction
-                self.report(stage)
-
-            try:
-                load_nerf(app.simulation, progress=progress, **app.nerf_options)
-            except Exception:
-                self.render_mode.value = app.render_mode  # stay in the mode shown
-                raise
-            finally:
-                self.progress.visible = False
+            self._set_quietly(self.render_mode, app.render_mode)  # until it is ready
+            app.fit_nerf(lambda: self._set_render_mode("nerf"))
+            return
         app.render_mode = mode
+        self._set_quietly(self.render_mode, mode)
         self._show(mode)
         self.report(f"showing the {mode}")
 
@@ -232,15 +345,9 @@ class ViserViewer:
             self.last_nerf_image = image
 
     def _resample(self, kernel_count: int) -> None:
-        self.progress.visible = True
         sim = self.app.simulation
-
-        def progress(stage: str, fraction: float) -> None:
-            self.progress.value = 100.0 * fraction
-            self.report(f"resampling: {stage}")
-
-        sim.resample(kernel_count, progress)
-        self.progress.visible = False
+        sim.resample(kernel_count, lambda stage, fraction: self.show_progress(f"resampling: {stage}", fraction))
+        self.show_progress("", None)
         self._remove_gizmo()
 
     def _release(self) -> None:
@@ -293,12 +400,22 @@ class ViserViewer:
         seconds = sim.time_breakdown()["seconds_per_step"]
         self.stats.content = (
             f"**{app.fps:.1f} fps**, t = {sim.time:.2f} s, {sim.model.basis.kernel_count} kernels, "
-            f"{report.iterations} Newton iterations  \n"
-            + ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items())
+            f"{report.iterations} Newton iterations"
         )
+        self.breakdown.content = ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items())
 
     def report(self, message: str) -> None:
         self.message.content = message
 
+    def show_progress(self, stage: str, fraction: float | None) -> None:
+        """The progress bar under the kernel count, and the stage as the panel's message (hidden with ``None``)."""
+        self.progress.visible = fraction is not None
+        if fraction is not None:
+            self.progress.value = 100.0 * min(max(float(fraction), 0.0), 1.0)
+            self.report(stage)
+
     def close(self) -> None:
         self.server.stop()
+        self.guard.close()
+        for name in ("websockets.server", "asyncio"):
+            logging.getLogger(name).removeFilter(self._malformed)

@@ -91,3 +91,33 @@ def test_click_and_drag_moves_the_body(device, tmp_path):
         app.stop.set()
         loop.join(30)
         app.viewer.close()
+
+
+@pytest.mark.skipif(CHROMIUM is None and not os.environ.get("CI"),
+                    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it")
+def test_viser_status_and_message_show_without_scrolling(device):
+    from playwright.sync_api import sync_playwright
+
+    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
+    app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
+    loop = threading.Thread(target=app.run, kwargs={"frame_seconds": 0.05}, daemon=True)
+    loop.start()
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=CHROMIUM, headless=True,
+                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
+            )
+            page = browser.new_page(viewport={"width": 1280, "height": 800})
+            page.goto(f"http://127.0.0.1:{app.viewer.port}")
+            app.viewer.report("a message to find")
+            for text in ("fps", "a message to find", "ms,"):
+                line = page.get_by_text(text).first
+                line.wait_for(timeout=60_000)
+                box = line.bounding_box()
+                assert box is not None and 0 <= box["y"] and box["y"] + box["height"] <= 800, (text, box)
+            browser.close()
+    finally:
+        app.stop.set()
+        loop.join(30)
+        app.close()

@@ -1,10 +1,14 @@
-"""apps.demo: the smoke runs exit 0, with the mesh and with the NeRF render mode."""
+"""apps.demo: the smoke runs exit 0, with the mesh and with the NeRF render mode; a bad or busy port stops the
+start at once with the fix."""
 
 from __future__ import annotations
 
+import socket
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from tests.pienerf.viewer.test_loop import free_port
 
@@ -47,3 +51,31 @@ def test_smoke_run_with_the_nerf_render(device, tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     assert "smoke: 3 steps of plant" in result.stdout and "smoke: nerf frame 64x48" in result.stdout
     assert list(tmp_path.glob("scenes/plant-*/ngp-*.pt")), "the fitted NeRF is cached under the scene's folder"
+
+
+def test_a_port_out_of_range_is_refused_with_the_fix():
+    result = subprocess.run(
+        [sys.executable, "-m", "apps.demo", "--smoke", "--port", "99999"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2 and "port 99999 is not a TCP port" in result.stderr and "--port N" in result.stderr
+
+
+@pytest.mark.parametrize("viewer", ["meshcat", "viser"])
+def test_a_port_in_use_is_named_with_the_fix(device, viewer):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run(
+            [sys.executable, "-m", "apps.demo", "--smoke", "--viewer", viewer, "--port", str(port), "--device", device],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+    assert result.returncode == 2, result.stderr[-2000:]
+    assert f"cannot listen on 127.0.0.1:{port}" in result.stderr and "--port N" in result.stderr

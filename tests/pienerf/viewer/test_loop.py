@@ -5,6 +5,7 @@ refined when still."""
 from __future__ import annotations
 
 import asyncio
+import logging
 import math
 import socket
 from types import SimpleNamespace
@@ -20,6 +21,24 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def _camera(sim):
+    """A viser client's camera message: 40° vertical field of view, 2.6 m in front of the body, 800x600."""
+    from viser._messages import ViewerCameraMessage
+
+    centre = sim.centre.double().tolist()
+    return ViewerCameraMessage(
+        wxyz=(0.0, 1.0, 0.0, 0.0),
+        position=(centre[0], centre[1], centre[2] + 2.6),
+        fov=math.radians(40.0),
+        near=0.01,
+        far=100.0,
+        image_height=600,
+        image_width=800,
+        look_at=tuple(centre),
+        up_direction=(0.0, 1.0, 0.0),
+    )
 
 
 @pytest.fixture
@@ -99,31 +118,28 @@ def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device
     import msgspec
     import viser
     import websockets
-    from viser._messages import ViewerCameraMessage
 
     app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True, cache_dir=str(tmp_path))
     try:
         sim = app.simulation
         assert app.render_mode == "mesh" and "nerf" not in sim.render_backends
         app.submit("render mode", lambda: app.viewer._set_render_mode("nerf"))
-        app.paused = True
         app.tick()
-        assert app.render_mode == "nerf" and "nerf" in sim.render_backends and not app.errors
+        assert app.nerf_job is not None and app.render_mode == "mesh", "the NeRF is fitted in the background"
+        assert app.viewer.progress.visible
+        start, ticks = sim.time, 0
+        while app.nerf_job is not None and ticks < 20000:  # the loop steps on while another process fits
+            app.tick()
+            ticks += 1
+        assert not app.errors, app.errors
+        assert app.render_mode == "nerf" and "nerf" in sim.render_backends and not app.viewer.progress.visible
+        assert ticks > 1 and sim.time > start, "the simulation stepped while the NeRF was fitted"
+        assert app.viewer.render_mode.value == "nerf"
+        app.paused = True
         assert not app.viewer.mesh.visible and not app.viewer.ground.visible
         assert app.viewer.nerf_renders == [], "no client, nothing rendered"
 
-        centre = sim.centre.double().tolist()
-        camera = ViewerCameraMessage(
-            wxyz=(0.0, 1.0, 0.0, 0.0),
-            position=(centre[0], centre[1], centre[2] + 2.6),
-            fov=math.radians(40.0),
-            near=0.01,
-            far=100.0,
-            image_height=600,
-            image_width=800,
-            look_at=tuple(centre),
-            up_direction=(0.0, 1.0, 0.0),
-        )
+        camera = _camera(sim)
         uri, protocols = f"ws://127.0.0.1:{app.viewer.port}", [f"viser-v{viser.__version__}"]
 
         async def look_and_render() -> None:
@@ -159,3 +175,72 @@ def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device
         assert app.render_mode == "mesh" and app.viewer.mesh.visible and app.viewer.ground.visible
     finally:
         app.viewer.close()
+
+
+def test_out_of_range_panel_values_are_refused_in_the_panel(app, caplog):
+    import msgspec
+    import viser
+    import websockets
+    from viser._messages import GuiUpdateMessage
+
+    viewer, sim = app.viewer, app.simulation
+    young, damping = sim.material.young_modulus, sim.config.solver.rayleigh_alpha
+    assert viewer.young.label == "Young's modulus (Pa)" and viewer.young.value == young, "E in Pa, as people read it"
+    sent = [
+        (viewer.render_mode, "bogus"),
+        (viewer.young, 1e400),  # log10 400 on the old slider: an OverflowError the panel never showed
+        (viewer.damping, 1e300),
+        (viewer.young, "20 kPa"),
+    ]
+
+    async def send() -> list[str]:
+        uri, protocols = f"ws://127.0.0.1:{viewer.port}", [f"viser-v{viser.__version__}"]
+        shown = []
+        async with websockets.connect(uri, subprotocols=protocols) as socket_:
+            await asyncio.wait_for(socket_.recv(), 20.0)
+            await socket_.send(msgspec.msgpack.encode(_camera(sim).as_serializable_dict()))
+            for _ in range(200):  # viser knows a client once it sent its camera
+                if viewer.server.get_clients():
+                    break
+                await asyncio.sleep(0.02)
+            for handle, value in sent:
+                viewer.message.content = ""
+                message = GuiUpdateMessage(handle._impl.uuid, {"value": value})
+                await socket_.send(msgspec.msgpack.encode(message.as_serializable_dict()))
+                for _ in range(200):  # the server's thread handles it
+                    if viewer.message.content:
+                        break
+                    await asyncio.sleep(0.02)
+                shown.append(viewer.message.content)
+        return shown
+
+    before = viewer._malformed.count
+    with caplog.at_level(logging.WARNING):
+        shown = asyncio.run(send())
+    assert viewer._malformed.count == before + 1, "text for a number fails in viser's own cast: one line"
+    assert "Traceback" not in caplog.text and "a viser client: dropped a malformed message" in caplog.text
+    assert "refused: unknown render mode 'bogus'" in shown[0]
+    assert "refused: young modulus must be a number in [100, 1e+09]" in shown[1], shown
+    assert "refused: damping must be a number in [0, 100]" in shown[2], shown
+    assert shown[3] == "", "viser drops it before the viewer sees it"
+    assert app.commands.empty(), "a refusal and its revert queue nothing (the refusal stays shown)"
+    assert viewer.render_mode.value == app.render_mode == "mesh" and viewer.mesh.visible, "the body stays shown"
+    assert viewer.young.value == young and viewer.damping.value == damping, "the controls show the values in use"
+    app.tick()
+    assert not app.errors and sim.material.young_modulus == young
+
+    viewer.young.value = 5e4  # a good value still goes through after the refusals
+    app.tick()
+    assert sim.material.young_modulus == 5e4 and "E = 50 kPa" in viewer.message.content
+
+
+def test_status_message_and_time_breakdown_head_the_panel(app):
+    viewer = app.viewer
+    app.tick()
+    top = [viewer.stats, viewer.message, viewer.breakdown]
+    assert "fps" in viewer.stats.content and " ms" in viewer.breakdown.content
+    root = {h._impl.parent_container_id for h in top}
+    assert len(root) == 1, "all three at the panel's top level"
+    others = [viewer.young, viewer.kernels, viewer.release, viewer.render_mode]
+    assert [h.order for h in top] == sorted(h.order for h in top), "status first, then message, breakdown"
+    assert max(h.order for h in top) < min(h.order for h in others), "above every folder's controls"

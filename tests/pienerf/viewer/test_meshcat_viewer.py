@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import re
 import time
 
 import numpy as np
@@ -132,6 +133,23 @@ def test_malformed_messages_are_refused_before_anything_is_queued(app, message):
     with pytest.raises(ValueError):
         app.viewer.on_message(CLIENT, message)
     assert app.commands.empty()
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "why"),
+    [
+        ("render_mode", "bogus", "unknown render mode 'bogus'"),
+        ("damping", 1e300, "damping must be a number in [0, 100]"),
+        ("young_modulus", math.inf, "young modulus must be a number in [100, 1e+09]"),
+        ("gravity", -9.81, "gravity must be a number in [0, 100]"),
+    ],
+)
+def test_refused_values_are_shown_in_the_page_and_change_nothing(app, name, value, why):
+    sim, mode, damping = app.simulation, app.render_mode, app.simulation.config.solver.rayleigh_alpha
+    with pytest.raises(ValueError, match=re.escape(why)):
+        app.viewer.on_message(CLIENT, {"type": "set", "name": name, "value": value})
+    assert app.viewer.message.startswith("refused: ") and why in app.viewer.message
+    assert app.commands.empty() and app.render_mode == mode and sim.config.solver.rayleigh_alpha == damping
 
 
 def test_page_cameras_follow_threejs_conventions():
