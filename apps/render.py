@@ -7,7 +7,9 @@ A scenario names the scene, material, discretisation, solver settings, pins, key
 colliders (a plane may move along keyframes), cameras (orbit or fixed) and outputs. Optional ``[[variants]]``
 override the material or discretisation; variants run one after another and their images are tiled side by
 side (Fig. 6: Neo-Hookean vs ARAP; Fig. 8: quadratic vs linear), each in its ``outputs.modes`` (a variant may
-name its own ``modes``). The run writes, under ``--out``:
+name its own ``modes``); when a frame holds several variants or modes, each tile carries its variant's ``label``
+(else its name) and mode. The mesh preview draws the ``[[colliders]]`` (balls, square plates) where they are.
+The run writes, under ``--out``:
 
 * ``frames/frame_NNNN.png`` (RGBA tiles of every camera × variant), ``video.mp4``;
 * ``depth/…_NNNN.npy`` (float32 metres) and ``depth/…_NNNN.png`` previews; ``shadow/…_NNNN.png`` when asked;
@@ -58,7 +60,7 @@ from pathlib import Path
 import imageio.v2 as imageio
 import numpy as np
 import torch
-from PIL import Image
+from PIL import Image, ImageDraw, ImageFont
 
 from kernels import backend
 from pienerf.output_files import OutputPathError, atomic_path, check_output_folder, write_json
@@ -75,8 +77,10 @@ from pienerf.scenario import (
     run_metrics,
     sample_volumes,
     scenario_cameras,
+    scenario_colliders,
     scenario_outputs,
     unmet_requirement,
+    volume_sample_frames,
 )
 
 
@@ -93,15 +97,45 @@ def _depth_preview(depth: torch.Tensor) -> np.ndarray:
     return _to_uint8(scaled)
 
 
-def _render_tiles(run: ScenarioRun, scenario: dict, t: float, frame: int, outputs: dict, out: Path) -> list:
-    """Every mode × view of one run at time ``t``; writes the depth and shadow images asked for."""
+def label_tile(tile: torch.Tensor, text: str) -> torch.Tensor:
+    """``tile [H, W, 4]`` (straight-alpha RGBA in [0, 1]) with ``text`` in black on an opaque white box at its
+    bottom-left corner (over the ground, clear of what hangs above the body), drawn in PIL's default font and
+    clipped to the tile when it is narrower than the text."""
+    image = Image.fromarray(_to_uint8(tile), mode="RGBA")
+    draw = ImageDraw.Draw(image)
+    font = ImageFont.load_default()
+    left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
+    origin = (3 - left, image.height - 3 - bottom)
+    draw.rectangle((0, image.height - (bottom - top) - 6, right - left + 6, image.height), fill=(255, 255, 255, 255))
+    draw.text(origin, text, fill=(0, 0, 0, 255), font=font)
+    return torch.from_numpy(np.asarray(image).astype(np.float32) / 255.0)
+
+
+def _tile_label(run: ScenarioRun, mode: str, labelled: bool) -> str | None:
+    """The label of a tile when the frame holds several variants or modes: the variant's (``label`` or name), then
+    the mode when the variant renders several."""
+    if not labelled:
+        return None
+    return run.label + (f" ({mode})" if len(run.modes) > 1 else "")
+
+
+def _render_tiles(
+    run: ScenarioRun, scenario: dict, t: float, frame: int, outputs: dict, out: Path, labelled: bool = False
+) -> list:
+    """Every mode × view of one run at time ``t``, each tile labelled when ``labelled``, the scenario's colliders
+    drawn where a mode can draw them; writes the depth and shadow images asked for."""
     simulation = run.simulation
     cameras = scenario_cameras(scenario, simulation.centre, t)
+    colliders = scenario_colliders(scenario, t, floor=False)  # the floor is the preview's ground already
     tiles = []
     for mode in run.modes:
+        if hasattr(simulation.render_backends[mode], "set_colliders"):
+            simulation.render_backends[mode].set_colliders(colliders)
         for view in range(len(cameras)):
             result = simulation.render(cameras, view, mode, shadow=outputs["shadow"])
-            tiles.append(result.rgba.cpu())  # render modes may return different devices
+            tile = result.rgba.cpu()  # render modes may return different devices
+            text = _tile_label(run, mode, labelled)
+            tiles.append(label_tile(tile, text) if text else tile)
             stem = f"{run.name}_{mode}_view{view}_{frame:04d}"
             if outputs["depth"]:
                 with atomic_path(out / "depth" / f"{stem}.npy") as temporary:
@@ -127,7 +161,8 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
     removes it.
     """
     frames, substeps = frame_count(scenario)
-    samples = sorted(scenario.get("volume_samples", []), key=lambda s: s["time"])
+    samples = volume_sample_frames(scenario)
+    labelled = len(runs) > 1 or any(len(run.modes) > 1 for run in runs)
     for folder in ("frames", "depth", "shadow"):
         if outputs[folder]:
             (out / folder).mkdir(exist_ok=True)
@@ -151,9 +186,9 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
             for run in runs:
                 if frame > 0:
                     step_seconds[run.name] += advance(run, scenario, t, substeps)
-                record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, t)
+                record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, frame)
                 start = time.perf_counter()
-                tiles += _render_tiles(run, scenario, t, frame, outputs, out)
+                tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled)
                 written["render_seconds"] += time.perf_counter() - start
             image = torch.cat(tiles, dim=1)
             rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
@@ -213,7 +248,7 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
         return metrics
 
     outputs = scenario_outputs(scenario)
-    frame_count(scenario)  # checked before any fitting
+    volume_sample_frames(scenario)  # the run's length and its samples are checked before any fitting
     runs, written = [], {}
     try:
         nerf = prepare_nerf(scenario, cache_dir, log)

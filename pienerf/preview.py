@@ -5,7 +5,8 @@ A :class:`RenderBackend` renders the body at generalized coordinates ``q`` seen 
 
 * :class:`MeshRenderBackend`: the scene's mesh carried by the Q-GMLS displacement field, x(X) = X + Σ_s N_s(X) q_s
   (Eq. 9), whose shape functions at the rest vertices are precomputed once; each frame moves the vertices, refits
-  the BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`).
+  the BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`); the
+  colliders it is given (spheres as balls, planes as square plates) are drawn beside the body and cast shadows.
 * :class:`ParticleRenderBackend`: the deformed particles splatted as discs with the colour of the nearest mesh
   vertex.
 * :class:`NerfRenderBackend`: a trained NeRF rendered by quadratic (or linear) ray warping, Eq. 19–21
@@ -30,6 +31,7 @@ from pienerf.nerf import OccupancyGrid
 from pienerf.picking import PickSurface
 from pienerf.render import MODES, DeformedRenderer, GroundPlane
 from pienerf.scenes import LIGHT_DIRECTION
+from pienerf.solver import PlaneCollider, SphereCollider
 
 __all__ = [
     "Frame",
@@ -101,6 +103,40 @@ class MeshRenderBackend:
         self.colors = colors.to(device).contiguous()
         self.bvh = MeshBVH(self.rest_vertices, faces.to(device=device, dtype=torch.int32))
         self._vertices = self.rest_vertices.clone()
+        self._scene_faces, self._scene_colors, self._scene_vertices = faces, colors, vertices.shape[0]
+        lo, hi = vertices[: self.body_vertices].amin(0), vertices[: self.body_vertices].amax(0)
+        self._body_centre, self._plate_half = 0.5 * (lo + hi), 0.6 * float((hi - lo).max())
+        self._collider_kinds: tuple = ()
+
+    def set_colliders(self, colliders) -> None:
+        """Draw ``colliders`` (:class:`pienerf.solver.SphereCollider`, :class:`pienerf.solver.PlaneCollider`) from
+        the next render on, in the place each has now; a plane becomes a square plate about the body's rest centre,
+        1.2 × the body's largest extent wide. Leave the floor out: the ground plane already draws it.
+
+        Changing the number or kind of colliders rebuilds the BVH (call :meth:`surface` again to pick on it);
+        moving them only refits it.
+        """
+        shapes = [_collider_mesh(c, self._body_centre, self._plate_half) for c in colliders]
+        kinds = tuple(type(c).__name__ for c in colliders)
+        base = self.rest_vertices[: self._scene_vertices]
+        if kinds != self._collider_kinds:
+            device = backend.torch_device()
+            faces, colors, offset = [self._scene_faces], [self._scene_colors], base.shape[0]
+            for vertices, shape_faces, color in shapes:
+                faces.append(shape_faces + offset)
+                colors.append(torch.tensor(color, dtype=torch.float32).expand(vertices.shape[0], 3))
+                offset += vertices.shape[0]
+            self.colors = torch.cat(colors).to(device).contiguous()
+            self.rest_vertices = torch.cat([base.cpu()] + [v for v, _, _ in shapes]).to(device)
+            self.bvh = MeshBVH(self.rest_vertices, torch.cat(faces).to(device=device, dtype=torch.int32))
+            body = self._vertices[: self.body_vertices]
+            self._vertices = self.rest_vertices.clone()
+            self._vertices[: self.body_vertices] = body
+            self._collider_kinds = kinds
+        elif shapes:
+            moved = torch.cat([v for v, _, _ in shapes]).to(self._vertices)
+            self._vertices[base.shape[0] :] = moved
+            self.bvh.refit(self._vertices)
 
     def deform(self, q: torch.Tensor) -> torch.Tensor:
         """Move the body's vertices to x(X) at ``q`` (Eq. 9) and refit the BVH; returns the ``[V, 3]`` vertices."""
@@ -126,6 +162,39 @@ class MeshRenderBackend:
             blocked = torch.where(bright > 0, 1.0 - lit.rgba[:, :3].mean(1) / bright.clamp_min(1e-6), 0.0)
             blocked = blocked.clamp(0, 1).reshape(shape)
         return Frame(lit.rgba.reshape(*shape, 4), lit.depth.reshape(shape), blocked)
+
+
+_SPHERE_COLOR = (0.45, 0.55, 0.7)
+_PLATE_COLOR = (0.5, 0.52, 0.56)
+
+
+def _collider_mesh(collider, centre: torch.Tensor, half: float) -> tuple[torch.Tensor, torch.Tensor, tuple]:
+    """``(vertices [V, 3], faces [F, 3], albedo)`` of a collider to draw: a sphere as a 16 × 32 UV sphere, a plane
+    as a square of half-width ``half`` (m) about ``centre [3]`` projected onto it."""
+    if isinstance(collider, SphereCollider):
+        rings, segments = 16, 32
+        theta = torch.linspace(0.0, math.pi, rings + 1)[:, None]
+        phi = torch.linspace(0.0, 2.0 * math.pi, segments + 1)[None, :-1]
+        ring = torch.sin(theta)
+        unit = torch.stack([ring * torch.cos(phi), torch.cos(theta).expand(-1, segments), ring * torch.sin(phi)], -1)
+        unit = unit.reshape(-1, 3)
+        vertices = torch.tensor(collider.centre, dtype=torch.float32) + float(collider.radius) * unit
+        i, j = torch.meshgrid(torch.arange(rings), torch.arange(segments), indexing="ij")
+        a, b = i * segments + j, i * segments + (j + 1) % segments
+        c, d = a + segments, b + segments
+        faces = torch.cat([torch.stack([a, c, b], -1), torch.stack([b, c, d], -1)]).reshape(-1, 3)
+        return vertices, faces, _SPHERE_COLOR
+    if isinstance(collider, PlaneCollider):
+        normal = torch.nn.functional.normalize(torch.tensor(collider.normal, dtype=torch.float32), dim=0)
+        point = torch.tensor(collider.point, dtype=torch.float32)
+        middle = centre.float() - float((centre.float() - point) @ normal) * normal
+        helper = torch.tensor([1.0, 0.0, 0.0]) if abs(float(normal[0])) < 0.9 else torch.tensor([0.0, 0.0, 1.0])
+        u = torch.nn.functional.normalize(torch.linalg.cross(normal, helper), dim=0)
+        v = torch.linalg.cross(normal, u)
+        corners = torch.tensor([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * half
+        vertices = middle + corners[:, :1] * u + corners[:, 1:] * v
+        return vertices, torch.tensor([[0, 1, 2], [0, 2, 3]]), _PLATE_COLOR
+    raise TypeError(f"cannot draw collider {collider!r}; use PlaneCollider or SphereCollider")
 
 
 class ParticleRenderBackend:

@@ -94,12 +94,17 @@ def plot_time_breakdown(breakdown: TimeBreakdown, path: Path | str, title: str =
 
 
 def plot_volume_bars(histories: Sequence[tuple[str, VolumeHistory]], path: Path | str) -> Path:
-    """Grouped bars of relative volume per instant for several runs (Fig. 6, bottom), as PNG + JSON."""
+    """Grouped bars of relative volume per instant for several runs (Fig. 6, bottom), as PNG + JSON.
+
+    Each bar is written with its value; a plot with no samples says so in the image instead of staying blank.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if not histories:
+        raise ValueError("plot_volume_bars needs at least one (name, VolumeHistory); pass the runs' histories")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     labels = histories[0][1].labels
@@ -107,12 +112,16 @@ def plot_volume_bars(histories: Sequence[tuple[str, VolumeHistory]], path: Path 
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=120)
     for i, (name, history) in enumerate(histories):
         x = np.arange(len(history.labels)) + (i - (len(histories) - 1) / 2) * width
-        ax.bar(x, history.relative(), width, label=name)
+        bars = ax.bar(x, history.relative(), width, label=name)
+        ax.bar_label(bars, fmt="%.3f", fontsize=7)
     ax.axhline(1.0, color="black", linewidth=0.8)
     ax.set_xticks(np.arange(len(labels)), labels)
     ax.set_ylabel("volume / rest volume")
     ax.set_ylim(0.0, 1.2)
-    ax.legend()
+    if any(len(history.labels) for _, history in histories):
+        ax.legend()
+    else:
+        ax.text(0.5, 0.5, "no volume samples were taken in this run", ha="center", va="center", transform=ax.transAxes)
     fig.tight_layout()
     try:
         with atomic_path(path) as temporary:

@@ -67,6 +67,7 @@ __all__ = [
     "scenario_colliders",
     "scenario_outputs",
     "unmet_requirement",
+    "volume_sample_frames",
 ]
 
 _VEC3 = "vec3"
@@ -174,6 +175,7 @@ _SCHEMA = {
         "spin_deg_per_s": _Number(float, -3600.0, 3600.0, "degrees/s"),
         "positions": list,
         "look_at": _VEC3,
+        "up": _VEC3,
         "width": _PIXELS,
         "height": _PIXELS,
         "fov": _Number(float, 1.0, 179.0, "degrees"),
@@ -186,7 +188,7 @@ _SCHEMA = {
         "fps": _Number(float, 1.0, 1000.0, "frames/s"),
         "modes": list,
     },
-    "variants": {"name": str, "material": dict, "discretization": dict, "modes": list},
+    "variants": {"name": str, "label": str, "material": dict, "discretization": dict, "modes": list},
     "volume_samples": {"time": _TIME, "label": str},
     "smoke": {
         "frames": _FRAMES,
@@ -293,6 +295,7 @@ def load_scenario(path: Path | str, smoke: bool = False) -> dict:
                     variant["discretization"][key] = shrink[key]
         if "nerf" in shrink and "nerf" in scenario:
             scenario["nerf"] = {**scenario["nerf"], **shrink["nerf"]}
+        _shrink_volume_samples(scenario)
     return scenario
 
 
@@ -460,6 +463,18 @@ def _check_structure(scenario: dict) -> None:
                 raise ScenarioError(f"'volume_samples[{i}]' needs '{key}' (time in s and a label for the bar chart)")
 
 
+def _shrink_volume_samples(scenario: dict) -> None:
+    """At smoke size, volume samples past the shortened run are taken at its last frame, their labels saying so, so
+    the volume bars still show every requested sample."""
+    solver = scenario.get("solver", {})
+    frame_dt = solver.get("dt", SimulationConfig.dt)
+    end = solver.get("frames", 30) * frame_dt
+    for spec in scenario.get("volume_samples", []):
+        if spec.get("time", 0.0) > end + 0.5 * frame_dt:  # the schema check made spec a table, time a number
+            label = spec.get("label", f"t = {spec['time']:g} s")
+            spec.update(time=end, label=f"{label} (smoke: at {end:.2g} s)")
+
+
 def unmet_requirement(scenario: dict) -> str | None:
     """Why the scenario cannot run here, or ``None``: ``"nerf_renderer"`` needs :mod:`pienerf.preview`'s warped-NeRF
     renderer, ``"data:NAME"`` the folder :data:`pienerf.paths.SHARED_DATA` ``/ NAME``, ``"checkpoint:PATH"`` a
@@ -509,13 +524,15 @@ def keyframe(keys: list, t: float, where: str) -> torch.Tensor:
 
 @dataclass
 class ScenarioRun:
-    """One variant of a scenario: its simulation, volume history, drag and render modes."""
+    """One variant of a scenario: its simulation, volume history, drag and render modes, and the label its tiles
+    carry when a frame shows several variants (the variant's ``label``, else its name)."""
 
     name: str
     simulation: Simulation
     volumes: VolumeHistory
     drags: list
     modes: list
+    label: str = ""
 
 
 @dataclass
@@ -596,22 +613,51 @@ def prepare_nerf(scenario: dict, cache_dir, log) -> ScenarioNerf | None:
 
 def scenario_cameras(scenario: dict, centre, t: float) -> Cameras:
     """The ``[cameras]`` table at time ``t`` (s): an orbit about ``centre [3]`` (m), turning at ``spin_deg_per_s``,
-    or fixed positions looking at one point."""
+    or fixed positions looking at one point.
+
+    ``up`` (default +y) is the world direction shown upright: elevations and azimuths are measured from and about
+    it, so a scenario whose gravity points along −z sets ``up = [0, 0, 1]`` to be seen the right way up.
+    """
     spec = scenario["cameras"]
     width, height, fov = spec.get("width", 320), spec.get("height", 240), spec.get("fov", 40.0)
     kind = spec.get("type", "orbit")
+    turn = _up_rotation(spec.get("up", [0.0, 1.0, 0.0]))  # from a y-up frame to the world
     if kind == "orbit":
         spin = spec.get("spin_deg_per_s", 0.0) * t
         azimuths = [a + spin for a in spec.get("azimuths", [0.0])]
-        return orbit_cameras(
-            centre, spec.get("distance", 2.5), azimuths, spec.get("elevation", 15.0), width, height, fov
+        local_centre = turn.T @ torch.as_tensor(centre, dtype=torch.float64).reshape(3)
+        cameras = orbit_cameras(
+            local_centre, spec.get("distance", 2.5), azimuths, spec.get("elevation", 15.0), width, height, fov
         )
-    if kind == "fixed":
+    elif kind == "fixed":
         if "positions" not in spec or "look_at" not in spec:
             raise ScenarioError("fixed cameras need 'cameras.positions' ([[x, y, z], ...]) and 'cameras.look_at'")
-        positions = torch.tensor(spec["positions"], dtype=torch.float64)
-        return look_at_cameras(positions, torch.tensor(spec["look_at"]).expand_as(positions), width, height, fov)
-    raise ScenarioError(f"'cameras.type' must be 'orbit' or 'fixed', got {kind!r}")
+        positions = torch.tensor(spec["positions"], dtype=torch.float64) @ turn
+        look_at = turn.T @ torch.tensor(spec["look_at"], dtype=torch.float64)
+        cameras = look_at_cameras(positions, look_at.expand_as(positions), width, height, fov)
+    else:
+        raise ScenarioError(f"'cameras.type' must be 'orbit' or 'fixed', got {kind!r}")
+    transform = torch.eye(4, dtype=torch.float64)
+    transform[:3, :3] = turn
+    return replace(cameras, c2w=(transform @ cameras.c2w.double()).float())
+
+
+def _up_rotation(up) -> torch.Tensor:
+    """The ``[3, 3]`` rotation taking +y to the unit vector of ``up`` (the shortest turn; a half turn about x for
+    −y)."""
+    target = torch.tensor(up, dtype=torch.float64)
+    norm = float(target.norm())
+    if norm == 0.0:
+        raise ScenarioError("'cameras.up' must be a non-zero direction like [0.0, 1.0, 0.0]")
+    target = target / norm
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    axis, cosine = torch.linalg.cross(y, target), float(y @ target)
+    if cosine < -1.0 + 1e-12:
+        return torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
+    k = torch.tensor(
+        [[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]], dtype=torch.float64
+    )
+    return torch.eye(3, dtype=torch.float64) + k + k @ k / (1.0 + cosine)
 
 
 def scenario_colliders(scenario: dict, t: float, floor: bool) -> list[PlaneCollider | SphereCollider]:
@@ -690,6 +736,7 @@ def build_run(
         volumes,
         drags,
         list(variant.get("modes", modes if modes is not None else ["mesh"])),
+        variant.get("label", variant.get("name", "default")),
     )
 
 
@@ -759,11 +806,36 @@ def advance(run: ScenarioRun, scenario: dict, t: float, substeps: int) -> list[f
     return seconds
 
 
-def sample_volumes(run: ScenarioRun, samples: list[dict], t: float) -> float:
-    """Record the ``[[volume_samples]]`` due by ``t`` (s); returns the body's volume relative to rest."""
+def volume_sample_frames(scenario: dict) -> list[dict]:
+    """The ``[[volume_samples]]`` in time order, each with the ``frame`` nearest its ``time``.
+
+    A frame lasts ``solver.dt`` (s), so a requested time lies within half a frame of its sample's frame; rounding,
+    not flooring, keeps t = 2.0 s of a 60-frame run at dt = 0.0333333 s. A time beyond the last frame (by more than
+    half a frame) or before the first raises :class:`ScenarioError` naming the sample and the run's length.
+    """
+    frames, _ = frame_count(scenario)
+    frame_dt = scenario.get("solver", {}).get("dt", SimulationConfig.dt)
+    samples = []
+    for i, spec in enumerate(scenario.get("volume_samples", [])):
+        if "time" not in spec:
+            raise ScenarioError(f"'volume_samples[{i}]' needs 'time' (s)")
+        frame = round(spec["time"] / frame_dt)
+        if not 0 <= frame <= frames:
+            raise ScenarioError(
+                f"'volume_samples[{i}].time' = {spec['time']} s lies outside the run (0 to {frames * frame_dt:.4g} s: "
+                f"{frames} frames of {frame_dt} s); raise 'solver.frames' or sample earlier"
+            )
+        samples.append({"label": f"t = {spec['time']:g} s", **spec, "frame": frame})
+    return sorted(samples, key=lambda s: s["frame"])
+
+
+def sample_volumes(run: ScenarioRun, samples: list[dict], frame: int) -> float:
+    """Record the samples of :func:`volume_sample_frames` whose frame is ``frame``; returns the body's volume
+    relative to rest."""
     volume = run.simulation.volume()
-    while samples and len(run.volumes.labels) < len(samples) and t + 1e-9 >= samples[len(run.volumes.labels)]["time"]:
-        run.volumes.add(samples[len(run.volumes.labels)]["label"], volume)
+    for sample in samples:
+        if sample["frame"] == frame:
+            run.volumes.add(sample["label"], volume)
     return volume / run.volumes.rest_volume
 
 

@@ -86,6 +86,42 @@ def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
         assert 0.5 < variant["final_relative_volume"] < 1.5
     if "nerf" in spec:
         _check_nerf_outputs(scenario.stem, out, metrics, tmp_path / "cache")
+    if scenario.stem in ("cloth_sphere", "jelly_compression"):
+        _check_figure(scenario.stem, out, spec, metrics)
+
+
+def _check_figure(name: str, out: Path, spec: dict, metrics: dict) -> None:
+    """Fig. 9 shows the ball under the cloth; Fig. 6 shows the plate, a label on each variant's tile and a bar per
+    volume sample and variant."""
+    import numpy as np
+    from PIL import Image
+
+    from tests.pienerf.test_reports import bar_pixels
+
+    rgba = np.asarray(Image.open(out / "frames" / "frame_0002.png")).astype(int)
+    r, g, b, a = np.moveaxis(rgba, -1, 0)
+    if name == "cloth_sphere":
+        ball = (a == 255) & (g > r) & (b > 1.3 * r)  # the ball's blue-grey: the plaid never has g > r
+        assert ball.sum() >= 5, "the sphere collider is drawn under the cloth"
+    else:
+        plate = (a == 255) & (b - r >= 4) & (b > g) & (g >= r)  # the plate's cool grey: not jelly, ground or label
+        assert plate.sum() >= 10, "the pressing plate is drawn"
+        for tile in np.split(rgba, len(spec["variants"]), axis=1):
+            box = tile[-12:, :12]  # the label's white box and the ink of its first letter
+            assert (box == 255).all(-1).any() and ((box[..., :3] < 100).all(-1) & (box[..., 3] == 255)).any(), "label"
+        for variant in spec["variants"]:
+            assert len(metrics["variants"][variant["name"]]["volume"]["labels"]) == len(spec["volume_samples"])
+        assert min(bar_pixels(out / "volume_bars.png")) > 500, "a bar per sample and variant"
+
+
+def test_label_tile_writes_the_text_into_its_corner():
+    import torch
+
+    tile = torch.rand(40, 120, 4)
+    labelled = render.label_tile(tile, "ARAP")
+    changed = (labelled - tile).abs().amax(-1) > 2 / 255
+    assert labelled.shape == tile.shape and changed[-8:, :20].float().mean() > 0.5 and not changed[:20].any()
+    assert (labelled[-14:, :30, :3] < 0.1).all(-1).sum() > 10  # the black letters
 
 
 def test_bad_scenarios_fail_with_one_line_naming_the_key(device, tmp_path, capsys):

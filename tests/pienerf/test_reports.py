@@ -1,6 +1,7 @@
 import json
 
 import imageio.v3 as iio
+import numpy as np
 import pytest
 import torch
 
@@ -33,3 +34,26 @@ def test_time_breakdown_and_volume_reports_are_written(device, tmp_path):
     assert json.loads(bars.with_suffix(".json").read_text())["arap"]["relative_volume"] == [0.9, 0.6]
     assert iio.imread(bars).ndim == 3
     assert torch.isfinite(state.q).all()
+
+
+def bar_pixels(path) -> list[int]:
+    """Pixels of matplotlib's first and second default colours (the bars of the first and second run)."""
+    image = iio.imread(path)[..., :3].astype(int)
+    return [int((np.abs(image - colour).sum(-1) < 12).sum()) for colour in ((31, 119, 180), (255, 127, 14))]
+
+
+def test_volume_bars_draw_a_bar_per_sample_and_say_when_there_are_none(tmp_path):
+    histories = [
+        ("neo_hookean", VolumeHistory(1.0, ["t = 1 s"], [0.98])),
+        ("arap", VolumeHistory(1.0, ["t = 1 s"], [0.7])),
+    ]
+    first, second = bar_pixels(plot_volume_bars(histories, tmp_path / "bars.png"))
+    assert first > 1000 and second > 500  # a 0.98 bar and a 0.7 one, at 720 × 420 pixels
+    empty = plot_volume_bars([("arap", VolumeHistory(1.0))], tmp_path / "empty.png")
+    assert bar_pixels(empty) == [0, 0]
+    image = iio.imread(empty)[..., :3].sum(-1)
+    h, w = image.shape
+    middle = image[h // 2 - 10 : h // 2 + 10, int(0.3 * w) : int(0.7 * w)]
+    assert (middle < 200).sum() > 50  # the sentence saying why there are no bars, in the middle of the axes
+    with pytest.raises(ValueError, match="at least one"):
+        plot_volume_bars([], tmp_path / "none.png")

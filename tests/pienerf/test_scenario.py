@@ -4,12 +4,20 @@ follow their keys, and bad input names the key."""
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
 
 from pienerf.picking import DragConfig
-from pienerf.scenario import ScenarioError, keyframe, scenario_cameras, scenario_colliders
+from pienerf.scenario import (
+    ScenarioError,
+    keyframe,
+    load_scenario,
+    scenario_cameras,
+    scenario_colliders,
+    volume_sample_frames,
+)
 from pienerf.session import INTERACTIVE_DISCRETIZATION, INTERACTIVE_SOLVER, SCENE_SETUPS, SimulationConfig
 
 
@@ -53,3 +61,41 @@ def test_colliders_and_cameras_follow_the_scenario():
     assert len(cameras) == 2 and (cameras.width, cameras.height) == (8, 6)
     with pytest.raises(ScenarioError, match="'colliders\\[0\\].type'"):
         scenario_colliders({"colliders": [{"type": "cone"}]}, 0.0, floor=False)
+
+
+SCENARIOS = Path(__file__).resolve().parents[2] / "assets" / "scenarios"
+
+
+def test_volume_samples_take_the_nearest_frame_and_refuse_times_past_the_run():
+    samples = [{"time": t, "label": f"{t} s"} for t in (2.0, 0.5, 1.0)]
+    scenario = {"solver": {"dt": 0.0333333, "frames": 60}, "volume_samples": samples}
+    frames = volume_sample_frames(scenario)
+    assert [s["frame"] for s in frames] == [15, 30, 60]  # 60 × 0.0333333 s < 2.0 s still samples t = 2 s
+    assert [s["label"] for s in frames] == ["0.5 s", "1.0 s", "2.0 s"]
+    scenario["volume_samples"].append({"time": 2.5})
+    with pytest.raises(ScenarioError, match=r"volume_samples\[3\].time' = 2.5 s lies outside the run"):
+        volume_sample_frames(scenario)
+
+
+def test_smoke_size_keeps_every_volume_sample_inside_its_short_run():
+    full = load_scenario(SCENARIOS / "jelly_compression.toml")
+    smoke = load_scenario(SCENARIOS / "jelly_compression.toml", smoke=True)
+    assert [s["frame"] for s in volume_sample_frames(full)] == [15, 30, 60]
+    frames = volume_sample_frames(smoke)
+    assert len(frames) == 3 and all(s["frame"] == smoke["solver"]["frames"] for s in frames)
+    assert all("smoke" in s["label"] for s in frames)
+
+
+def test_cameras_up_turns_the_view_with_the_world():
+    scenario = {"cameras": {"type": "orbit", "azimuths": [0.0], "elevation": 30.0, "width": 8, "height": 6}}
+    y_up = scenario_cameras(scenario, [0.0, 0.0, 0.0], 0.0)
+    scenario["cameras"]["up"] = [0.0, 0.0, 1.0]
+    z_up = scenario_cameras(scenario, [0.0, 0.5, 0.0], 0.0)
+    assert y_up.c2w[0, 1, 1] > 0.8  # the image's up is +y ...
+    assert z_up.c2w[0, 2, 1] > 0.8 and z_up.c2w[0, 2, 3] > 0.5  # ... and +z, the camera above the centre along z
+    forward = -z_up.c2w[0, :3, 2]
+    to_centre = torch.tensor([0.0, 0.5, 0.0]) - z_up.c2w[0, :3, 3]
+    assert torch.nn.functional.cosine_similarity(forward, to_centre, dim=0) > 0.999  # still looking at the centre
+    scenario["cameras"]["up"] = [0.0, 0.0, 0.0]
+    with pytest.raises(ScenarioError, match="'cameras.up' must be a non-zero direction"):
+        scenario_cameras(scenario, [0.0, 0.0, 0.0], 0.0)
