@@ -10,7 +10,9 @@
 DiffCloth skirt ``skirt1252.obj`` from the shared data folder, or the embedded procedural skirt where that folder
 is absent; the command says which), drives it through a motion and writes
 ``sequence.npz`` (garment and body per frame), ``stats.json`` (per-step solver statistics), ``video.mp4``
-(orbiting camera) and, with ``--meshes obj|ply``, one garment mesh per frame.
+(orbiting camera) and, with ``--meshes obj|ply``, one garment mesh per frame. A garment that is not on the body
+(:func:`physavatar.garment.place_on_body`) is refused; ``--garment-scale`` gives its file's scale where the guess
+from its height is wrong. The summary line and ``stats.json`` count the steps whose line search stalled.
 
 ``pipeline`` runs PhysAvatar end to end on a synthetic capture (:mod:`physavatar.pipeline`): it films a skirt whose
 physics it knows, tracks it with mesh-aligned Gaussians, estimates its stiffness and appearance, animates it under
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import sys
 from pathlib import Path
@@ -51,6 +54,12 @@ def _parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help=f"OBJ/PLY garment (default: {DEFAULT_GARMENT.name}, or the procedural skirt without the shared data)",
+    )
+    sim.add_argument(
+        "--garment-scale",
+        default="auto",
+        help="factor from the garment file's units to metres (1 keeps its coordinates); default auto: a power of ten "
+        "guessed from its height",
     )
     sim.add_argument("--motion", default="walk", help="walk, turn, raise, jump or a .bvh file")
     sim.add_argument("--frames", type=int, default=100, help="simulated frames (steps of 1/fps s)")
@@ -116,6 +125,19 @@ def _check_motion(name: str) -> None:
         raise FileNotFoundError(f"motion file {path} does not exist")
 
 
+def _garment_scale(text: str) -> float | str:
+    """``--garment-scale``: ``"auto"`` or a positive finite number."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"--garment-scale must be 'auto' or a positive number (1 for a file in metres), got {text!r}")
+    return value
+
+
 def _check_out(out: Path) -> None:
     """Refuse, before any work, an output folder that cannot be created or written."""
     existing = out
@@ -142,9 +164,16 @@ def simulate_command(args: argparse.Namespace) -> None:
     sim.require_video_encoder()  # before the simulation, not after it
     if args.garment is not None and not args.garment.is_file():
         raise FileNotFoundError(f"garment file {args.garment} does not exist; pass --garment PATH (OBJ or PLY)")
+    scale = _garment_scale(args.garment_scale)
     backend.init(args.device)
     body = Body.mannequin(spacing=0.03)
-    garment = default_garment(body) if args.garment is None else place_on_body(load_garment(args.garment), body)
+    if args.garment is None:
+        garment = default_garment(body)
+    else:
+        try:
+            garment = place_on_body(load_garment(args.garment, scale=scale), body)
+        except ValueError as error:
+            raise ValueError(f"{error} (here, --garment-scale sets the file's scale)") from None
     for note in garment.notes:
         print(f"{garment.name}: {note}", file=sys.stderr)
     if args.motion in MOTIONS:
@@ -160,9 +189,11 @@ def simulate_command(args: argparse.Namespace) -> None:
         sim.write_meshes(result, args.out / "meshes", args.meshes)
     size = (128, 96) if args.smoke else (width, height)
     sim.render_video(result, args.out / "video.mp4", size=size)
+    stalled = sim.stalled_steps(result)
     print(
         f"wrote {args.out}/sequence.npz, stats.json, video.mp4 ({result.garment_frames.shape[0]} frames of the "
-        f"garment {garment.name!r})"
+        f"garment {garment.name!r}); {stalled} of {len(result.stats)} steps ended with a stalled line search"
+        + (" (those frames are not converged solutions)" if stalled else "")
     )
 
 

@@ -41,6 +41,12 @@ stops the render with exit status 130: ``metrics.json`` then holds the frames th
 ``"interrupted": true``, and ``video.mp4`` those frames. A failed write (a full disk) records ``"error"`` in
 ``metrics.json`` with the finished frames where it can, and exits with status 1.
 
+Each variant's line ends with how many of its steps ended with a failed line search (by kind: ``inversion``,
+``no decrease``, ``not finite``) and how many did not converge; ``metrics.json`` records the counts under
+``variants.NAME.solver``. Where a variant's result is wrong (a line search met NaN, or none of its steps could move
+the body), the outputs are still written, ``metrics.json`` names the variant under ``wrong_results`` and the exit
+status is 3.
+
 A scenario whose ``requires`` cannot be met (a trained NeRF, the warped-NeRF renderer, a data folder) is skipped:
 ``metrics.json`` holds ``skipped`` and the reason, exit status 0.
 
@@ -280,16 +286,35 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
             "modes": {run.name: run.modes for run in runs},
         }
     metrics.update(_finished_metrics(runs, written))
+    metrics["wrong_results"] = {run.name: run.tally.wrong_result() for run in runs if run.tally.wrong_result()}
     write_json(out / "metrics.json", metrics, default=str)
     log(
         f"{name}: {metrics['frames']} frames, {len(runs)} variant(s), build {metrics['build_seconds']:.1f} s, "
         f"{1e3 * breakdown.to_dict()['seconds_per_step'].get('assembly', 0):.1f} ms assembly/step → {out}"
     )
+    for run in runs:
+        log(f"{name}: variant {run.name!r}: {_failure_summary(run.tally.to_dict())}")
     return metrics
 
 
+def _failure_summary(solver: dict) -> str:
+    """One line: how many steps ended with a failed line search, by kind, and how many did not converge."""
+    kinds = ", ".join(f"{kind}: {count}" for kind, count in solver["line_search_failures"].items())
+    return (
+        f"{solver['line_search_failed_steps']} of {solver['steps']} steps ended with a failed line search"
+        + (f" ({kinds})" if kinds else "")
+        + f", {solver['unconverged_steps']} did not converge"
+    )
+
+
+SOLVER_FAILED = 3
+"""Exit status of a render whose solver failed so that a variant's result is wrong
+(:meth:`pienerf.scenario.StepTally.wrong_result`); the outputs are written all the same, for inspection."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Render the scenario; exit status 0, 2 for bad input, 1 when writing failed, 130 when interrupted."""
+    """Render the scenario; exit status 0, 2 for bad input, 1 when writing failed, 3 when a variant's solver failed
+    (:data:`SOLVER_FAILED`), 130 when interrupted."""
     try:
         return _main(argv)
     except KeyboardInterrupt:  # before the render began: nothing to keep
@@ -331,7 +356,7 @@ def _main(argv: list[str] | None) -> int:
         return 2
     metrics_file, started = args.out / "metrics.json", time.time()
     try:
-        render_scenario(scenario, args.out, cache_dir=args.cache_dir)
+        metrics = render_scenario(scenario, args.out, cache_dir=args.cache_dir)
     except KeyboardInterrupt:
         print(f"interrupted: {metrics_file} holds the frames that finished", file=sys.stderr)
         return 130
@@ -344,7 +369,13 @@ def _main(argv: list[str] | None) -> int:
         kept = f"; {metrics_file} holds the frames that finished" if fresh else ""
         print(f"error: writing under {args.out} failed{full}: {error}{kept}", file=sys.stderr)
         return 1
-    return 0
+    for variant, reason in metrics.get("wrong_results", {}).items():
+        print(
+            f"error: {args.scenario}: variant {variant!r}: {reason}, so its frames are not solutions of the implicit "
+            "step; lower solver.dt (or raise solver.substeps), soften the material or the loads",
+            file=sys.stderr,
+        )
+    return SOLVER_FAILED if metrics.get("wrong_results") else 0
 
 
 if __name__ == "__main__":

@@ -25,6 +25,7 @@ from physavatar.body import Body, linear_blend_skinning
 __all__ = [
     "BOUNDARY_MODES",
     "DEFAULT_GARMENT",
+    "MAX_GAP",
     "SHARED_GARMENTS",
     "Garment",
     "default_garment",
@@ -47,6 +48,8 @@ DEFAULT_GARMENT = SHARED_GARMENTS / "skirt1252.obj"
 _PLAUSIBLE_HEIGHT = (0.1, 2.0)  # m, the vertical extent of a garment worn by an adult
 _TYPICAL_HEIGHT = 0.6  # m, the extent "auto" scaling aims for among powers of ten
 _UNIT_NAMES = {-1: "decimetres", -2: "centimetres", -3: "millimetres", 1: "decametres"}
+MAX_GAP = 0.1
+"""Largest distance (m) from a garment's nearest vertex to the body surface for it to count as worn."""
 _MAX_COORDINATE = 1e9  # any unit: a 2 m garment in nanometres stays below it, corrupt floats (1e308) do not
 
 
@@ -276,7 +279,7 @@ def _rescale(vertices: np.ndarray, scale, name: str) -> tuple[np.ndarray, str]:
         unit = _UNIT_NAMES.get(exponent, f"units of 10^{exponent} m")
         note = (
             f"its height {height:g} is not a garment's in metres: read it in {unit} and scaled by {factor:g} "
-            f"to {height * factor:.3f} m"
+            f"about the origin to {height * factor:.3f} m"
         )
         return vertices * factor, note
     if not (isinstance(scale, int | float) and math.isfinite(scale) and scale > 0):
@@ -289,26 +292,41 @@ def _rescale(vertices: np.ndarray, scale, name: str) -> tuple[np.ndarray, str]:
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def place_on_body(garment: Garment, body: Body, margin: float = 2e-3, max_widening: float = 1.3) -> Garment:
-    """Move a garment minimally so that every vertex starts at least ``margin`` outside the rest body.
+def place_on_body(
+    garment: Garment,
+    body: Body,
+    margin: float = 2e-3,
+    max_widening: float = 1.3,
+    max_gap: float = MAX_GAP,
+) -> Garment:
+    """Move a garment minimally so that every vertex starts at least ``margin`` outside the rest body, and refuse
+    one that is not worn by the body at all.
 
-    Tries, in order: the garment as it is; centred horizontally on the body's cross-section at the garment's
-    heights; then that, widened horizontally about the body's axis in 2 % steps up to ``max_widening``.
+    A garment is worn when its bounding box overlaps the body's and its nearest vertex lies within ``max_gap`` of
+    the body surface (a garment elsewhere would fall freely, touching nothing). Tries, in order: the garment as it
+    is; centred horizontally on the body's cross-section at the garment's heights; then that, widened horizontally
+    about the body's axis in 2 % steps up to ``max_widening``.
 
     Args:
         garment: garment in metres.
         body: the body in its rest pose (the first frame of the motion).
         margin: smallest signed distance a vertex may have to the body surface, m (keep it above ``d̂``).
         max_widening: largest horizontal scale factor allowed.
+        max_gap: largest distance of the garment's nearest vertex to the body surface, m (:data:`MAX_GAP`).
 
     Returns:
         The garment, with a note of what was done (nothing if it already fits).
 
     Raises:
-        ValueError: no candidate clears the body; names the deepest vertex and how far inside it lies.
+        ValueError: the garment is not on the body (its box misses the body's, or its nearest vertex is farther
+            than ``max_gap``), naming the distance; or no candidate clears the body, naming the deepest vertex and
+            how far inside it lies.
     """
+    if not (math.isfinite(max_gap) and max_gap > margin):
+        raise ValueError(f"max_gap must be a finite distance above margin ({margin:g} m), got {max_gap!r}")
     x = garment.vertices.to(torch.float64)
     body = body.to("cpu", torch.float64)
+    _check_worn(garment, x, body, max_gap)
     depth = _clearance(x, body)
     if depth >= margin:
         return garment
@@ -337,6 +355,35 @@ def place_on_body(garment: Garment, body: Body, margin: float = 2e-3, max_wideni
         f"its vertex {worst} lies {-float(sd[worst]) * 1e3:.1f} mm inside the body (needs {margin * 1e3:g} mm "
         "outside); fit the garment to this body first or pass a larger garment"
     )
+
+
+def _check_worn(garment: Garment, x: torch.Tensor, body: Body, max_gap: float) -> None:
+    """Refuse a garment ``x [V, 3]`` (m) whose bounding box misses the body's or whose nearest vertex lies farther
+    than ``max_gap`` (m) from the body surface, naming the distance, what loading changed, and the fixes."""
+    lo, hi = x.amin(0), x.amax(0)
+    body_lo, body_hi = body.vertices.amin(0), body.vertices.amax(0)
+    _, distance, _, _ = body.closest_points(x)
+    nearest = float(distance.min())
+    separated = bool(((lo > body_hi) | (hi < body_lo)).any())
+    if not separated and nearest <= max_gap:
+        return
+    where = (
+        f"its bounding box [{_point(lo)}]–[{_point(hi)}] m does not overlap the body's [{_point(body_lo)}]–"
+        f"[{_point(body_hi)}] m"
+        if separated
+        else f"its nearest vertex is {nearest * 1e3:.0f} mm from the body surface, farther than {max_gap * 1e3:g} mm"
+    )
+    notes = f" (notes: {'; '.join(garment.notes)})" if garment.notes else ""
+    option = "" if separated else ", or pass a larger max_gap"
+    raise ValueError(
+        f"{garment.name}: the garment is not on the body: {where}{notes}, so it would fall freely, touching "
+        f"nothing; move or scale it onto the body (load it with the scale its file is in, e.g. scale=1 for "
+        f"metres){option}"
+    )
+
+
+def _point(p: torch.Tensor) -> str:
+    return ", ".join(f"{float(c):.2f}" for c in p)
 
 
 def _clearance(x: torch.Tensor, body: Body) -> float:

@@ -39,6 +39,7 @@ __all__ = [
     "render_video",
     "require_video_encoder",
     "simulate",
+    "stalled_steps",
     "write_meshes",
     "write_npz",
     "write_stats_json",
@@ -181,8 +182,15 @@ def write_meshes(result: SimulationResult, folder: str | Path, fmt: str = "obj")
     return paths
 
 
+def stalled_steps(result: SimulationResult) -> int:
+    """How many steps ended with a line search that could not move (``StepStats.line_search_stalled``): each left
+    the garment where the step's Newton iteration stood, not at a solution of Eq. 5."""
+    return sum(s.line_search_stalled for s in result.stats)
+
+
 def write_stats_json(result: SimulationResult, path: str | Path) -> Path:
-    """Per-step statistics as JSON: Newton iterations, convergence, min distances (m), contacts, phase times (s)."""
+    """Per-step statistics as JSON: Newton iterations, convergence, min distances (m), contacts, phase times (s);
+    the summary counts the unconverged steps and those whose line search stalled."""
     steps = []
     for t, (s, wall) in enumerate(zip(result.stats, result.wall_time, strict=True)):
         record = dataclasses.asdict(s)
@@ -197,6 +205,8 @@ def write_stats_json(result: SimulationResult, path: str | Path) -> Path:
         "mean_wall_time_s": float(np.mean(result.wall_time)) if steps else 0.0,
         "mean_newton_iterations": float(np.mean([s.newton_iterations for s in result.stats])) if steps else 0.0,
         "min_distance_body_m": min((s.min_distance_body for s in result.stats), default=math.inf),
+        "unconverged_steps": sum(not s.converged for s in result.stats),
+        "line_search_stalled_steps": stalled_steps(result),
     }
     if math.isinf(summary["min_distance_body_m"]):
         summary["min_distance_body_m"] = None

@@ -17,7 +17,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 try:
@@ -38,7 +38,7 @@ from pienerf.qgmls import ORDERS
 from pienerf.reports import TimeBreakdown, VolumeHistory
 from pienerf.scenes import SCENES
 from pienerf.session import SCENE_SETUPS, Simulation, SimulationConfig
-from pienerf.solver import PlaneCollider, SphereCollider
+from pienerf.solver import PlaneCollider, SphereCollider, StepReport
 
 __all__ = [
     "MAX_COORDINATE",
@@ -50,6 +50,7 @@ __all__ = [
     "ScenarioError",
     "ScenarioNerf",
     "ScenarioRun",
+    "StepTally",
     "advance",
     "apply_controls",
     "build_run",
@@ -523,9 +524,62 @@ def keyframe(keys: list, t: float, where: str) -> torch.Tensor:
 
 
 @dataclass
+class StepTally:
+    """How a run's solver steps ended, counted from their step reports (:class:`pienerf.solver.StepReport`).
+
+    Attributes:
+        steps: steps taken.
+        unconverged: steps that ended without meeting the Newton tolerance.
+        line_search_failures: steps whose last line search failed, by kind (``"inversion"``, ``"no decrease"``,
+            ``"not finite"``).
+        stuck: steps whose first line search already failed, so the body did not move in them at all.
+    """
+
+    steps: int = 0
+    unconverged: int = 0
+    line_search_failures: dict[str, int] = field(default_factory=dict)
+    stuck: int = 0
+
+    def add(self, report: StepReport) -> None:
+        """Count one step's report."""
+        self.steps += 1
+        self.unconverged += not report.converged
+        if report.line_search_failure:
+            kind = report.line_search_failure
+            self.line_search_failures[kind] = self.line_search_failures.get(kind, 0) + 1
+            self.stuck += report.iterations <= 1
+
+    @property
+    def failed(self) -> int:
+        """Steps whose line search failed, of any kind."""
+        return sum(self.line_search_failures.values())
+
+    def wrong_result(self) -> str | None:
+        """Why the run's result cannot be trusted, or ``None``: a line search that met non-finite values (NaN in the
+        Newton direction or energy), or one that could not move the body in any step of the run."""
+        not_finite = self.line_search_failures.get("not finite", 0)
+        if not_finite:
+            return f"{not_finite} of {self.steps} steps met non-finite values (NaN) in their line search"
+        if self.steps and self.stuck == self.steps:
+            return f"the line search could not move the body in any of the {self.steps} steps"
+        return None
+
+    def to_dict(self) -> dict:
+        """The counts as JSON-ready values, with the reason the result is wrong (``null`` when it is not)."""
+        return {
+            "steps": self.steps,
+            "unconverged_steps": self.unconverged,
+            "line_search_failed_steps": self.failed,
+            "line_search_failures": dict(sorted(self.line_search_failures.items())),
+            "stuck_steps": self.stuck,
+            "wrong_result": self.wrong_result(),
+        }
+
+
+@dataclass
 class ScenarioRun:
-    """One variant of a scenario: its simulation, volume history, drag and render modes, and the label its tiles
-    carry when a frame shows several variants (the variant's ``label``, else its name)."""
+    """One variant of a scenario: its simulation, volume history, drag, render modes, how its steps ended, and the
+    label its tiles carry when a frame shows several variants (the variant's ``label``, else its name)."""
 
     name: str
     simulation: Simulation
@@ -533,6 +587,7 @@ class ScenarioRun:
     drags: list
     modes: list
     label: str = ""
+    tally: StepTally = field(default_factory=StepTally)
 
 
 @dataclass
@@ -793,7 +848,7 @@ def build_runs(scenario: dict, nerf: ScenarioNerf | None) -> list[ScenarioRun]:
 
 def advance(run: ScenarioRun, scenario: dict, t: float, substeps: int) -> list[float]:
     """Step ``run`` from the previous frame to the frame at ``t`` (s): ``substeps`` steps, each under the controls
-    and colliders of its own time; returns each step's wall-clock seconds."""
+    and colliders of its own time; returns each step's wall-clock seconds and counts each step in ``run.tally``."""
     simulation = run.simulation
     dt = simulation.config.dt
     seconds = []
@@ -801,8 +856,9 @@ def advance(run: ScenarioRun, scenario: dict, t: float, substeps: int) -> list[f
         ts = t - substeps * dt + sub * dt
         apply_controls(run, scenario, ts)
         start = time.perf_counter()
-        simulation.step(1, colliders=scenario_colliders(scenario, ts, simulation.config.floor))
+        report = simulation.step(1, colliders=scenario_colliders(scenario, ts, simulation.config.floor))
         seconds.append(time.perf_counter() - start)
+        run.tally.add(report)
     return seconds
 
 
@@ -851,7 +907,7 @@ def merged_breakdown(runs: list[ScenarioRun]) -> TimeBreakdown:
 
 
 def run_metrics(run: ScenarioRun, step_seconds: list[float]) -> dict:
-    """A run's summary, median step time, volumes and largest displacement (m)."""
+    """A run's summary, median step time, volumes, largest displacement (m) and how its solver steps ended."""
     simulation = run.simulation
     displacement = simulation.particle_positions() - simulation.model.position.float().cpu()
     return {
@@ -860,4 +916,5 @@ def run_metrics(run: ScenarioRun, step_seconds: list[float]) -> dict:
         "volume": {"labels": run.volumes.labels, "relative": run.volumes.relative().tolist()},
         "final_relative_volume": simulation.volume() / run.volumes.rest_volume,
         "final_max_displacement_m": float(displacement.norm(dim=1).max()),
+        "solver": run.tally.to_dict(),
     }

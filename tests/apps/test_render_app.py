@@ -288,3 +288,45 @@ def test_ctrl_c_mid_render_writes_what_finished_and_exits_130(tmp_path):
 
     with imageio.get_reader(out / "video.mp4") as reader:
         assert reader.count_frames() == finished
+
+
+def _stiff_scenario(folder: Path) -> Path:
+    """A nearly incompressible jelly a million times stiffer than steel, stepped 1 s at a time under 1000 g: the
+    Newton direction is so ill-conditioned that no step along it lowers the energy, in every step."""
+    path = folder / "stiff.toml"
+    path.write_text(
+        'name = "stiff"\n[scene]\nname = "jelly"\n'
+        '[material]\nmodel = "neo_hookean"\nyoung_modulus = 1.0e12\npoisson_ratio = 0.499\n'
+        "[discretization]\nkernel_count = 6\nparticle_radius = 0.09\nlloyd_iterations = 0\n"
+        "[solver]\ndt = 1.0\nframes = 2\ngravity = [0.0, -1.0e4, 0.0]\n"
+        "[cameras]\nwidth = 24\nheight = 18\n[outputs]\nmp4 = false\n"
+    )
+    return path
+
+
+def test_a_line_search_that_never_moves_exits_3_naming_the_variant(device, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert render.main([str(_stiff_scenario(tmp_path)), "--out", str(out), "--device", device]) == render.SOLVER_FAILED
+    captured = capsys.readouterr()
+    assert "variant 'default': 2 of 2 steps ended with a failed line search (no decrease: 2)" in captured.out
+    errors = [line for line in captured.err.splitlines() if line.startswith("error:")]
+    assert (
+        len(errors) == 1
+        and "variant 'default': the line search could not move the body in any of the 2 steps" in (errors[0])
+    )
+    assert "lower solver.dt" in errors[0]
+    metrics = json.loads((out / "metrics.json").read_text())
+    solver = metrics["variants"]["default"]["solver"]
+    assert solver["line_search_failures"] == {"no decrease": 2} and solver["stuck_steps"] == 2
+    assert metrics["wrong_results"] == {"default": solver["wrong_result"]} and metrics["frames"] == 3
+    assert len(list((out / "frames").iterdir())) == 3  # the outputs are kept for inspection
+
+
+def test_a_sound_render_reports_no_failed_line_search(device, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path, frames=2)), "--out", str(out), "--device", device]) == 0
+    assert "variant 'default': 0 of 2 steps ended with a failed line search" in capsys.readouterr().out
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["wrong_results"] == {}
+    solver = metrics["variants"]["default"]["solver"]
+    assert solver["steps"] == 2 and solver["line_search_failures"] == {} and solver["wrong_result"] is None
