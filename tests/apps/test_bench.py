@@ -67,3 +67,15 @@ def test_bad_input_is_one_clear_line(args, message):
     lines = [line for line in result.stderr.splitlines() if line.startswith("bench:")]
     assert len(lines) == 1 and message in lines[0], result.stderr
     assert "copy_taichi" in lines[0] or "workload" not in message
+
+
+def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
+    """The viewer's frame gives its step and its render apart; the Q-GMLS step runs beside its torch reference."""
+    records = bench.main(
+        ["--workload", "viewer_frame,qgmls_step", "--device", device, "--size", "smoke", "--reps", "2"]
+    )
+    by_name = {r["workload"]: r for r in records}
+    viewer, step = by_name["viewer_frame"], by_name["qgmls_step"]
+    assert viewer["params"]["size"] == "160x120" and viewer["unit"] == "frames/s"
+    assert viewer["step_median_s"] > 0 and viewer["render_median_s"] > 0
+    assert step["reference_median_s"] > 0 and step["time_assembly_s"] > 0
