@@ -331,10 +331,14 @@ class SolverQGMLS:
 
     # -- the step --------------------------------------------------------------------------
 
+    @backend.one_torch_thread_on_cpu()
     def step(self, state_in: StateQGMLS, state_out: StateQGMLS, control: ControlQGMLS, dt: float) -> StepReport:
         """Advance one implicit Euler step of ``dt`` seconds from ``state_in`` into ``state_out``.
 
-        ``state_out`` may be ``state_in``. Returns the step's statistics and time breakdown.
+        ``state_out`` may be ``state_in``. Returns the step's statistics and time breakdown. On the CPU torch runs on
+        one thread meanwhile (:func:`kernels.backend.one_torch_thread_on_cpu`): a step is a few hundred small tensor
+        operations around one product and one factorisation of a few hundred rows, and waking, or on shared cores
+        waiting for, a second thread at each of them costs more than it saves.
         """
         self._check_step_inputs(state_in, control, dt)
         report = StepReport()
