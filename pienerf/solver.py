@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from kernels import backend
+from kernels.ip_integrate import DENSE_ASSEMBLY_RATIO
 from pienerf.materials import Material
 from pienerf.model import PointHandle, QGMLSModel
 
@@ -245,8 +246,17 @@ class SolverQGMLS:
         return torch.kron((rows * stiffness[:, None]).T @ rows, self._eye3)
 
     def _normal_point_hessian(self, index, value, stiffness, normal) -> torch.Tensor:
-        """Σ_m k_m J_mᵀ n_m n_mᵀ J_m ``[3nT, 3nT]`` for stiffnesses ``[M]`` and unit normals ``[M, 3]``: Wᵀ W with
-        rows W_m = √k_m (N_m ⊗ n_m), one product."""
+        """Σ_m k_m J_mᵀ n_m n_mᵀ J_m ``[3nT, 3nT]`` for stiffnesses ``[M]`` and unit normals ``[M, 3]``.
+
+        Points that see most shape functions (S close to nT): Wᵀ W with rows W_m = √k_m (N_m ⊗ n_m), one product.
+        Otherwise (many narrow kernels, where that product's (3nT)² work per point would dominate) each point's
+        [S, S] blocks are summed into place (:meth:`kernels.ip_integrate.IPIntegrator.assemble_blocks`).
+        """
+        if (self._n / max(index.shape[1], 1)) ** 2 >= DENSE_ASSEMBLY_RATIO:
+            scale = stiffness[:, None, None] * value[:, :, None] * value[:, None, :]
+            blocks = scale[..., None] * (normal[:, :, None] * normal[:, None, :]).reshape(-1, 1, 1, 9)
+            block_index = (index[:, :, None] * self._n + index[:, None, :]).reshape(-1)
+            return self.integrator.assemble_blocks(blocks.reshape(-1, 9), block_index)
         rows = self._point_shape_matrix(index, value)
         weighted = (stiffness.sqrt()[:, None, None] * rows[:, :, None] * normal[:, None, :]).reshape(len(rows), -1)
         return weighted.T @ weighted
