@@ -12,9 +12,17 @@ precomputed once. Then (Eq. 16–17)
 
 Each IP only touches the S shape functions whose kernels cover it, so its Hessian is a dense
 [S·3, S·3] block. The material response (SVD, stress, eigen-projected ∂P/∂F) runs in the Warp
-kernel of :mod:`kernels.hyperelastic`; the contractions above are batched matrix products in torch
-(cuBLAS/MKL run them near their peak) and the blocks are
-scatter-added into the dense [3nT, 3nT] Hessian by precomputed block indices. Projecting every
+kernel of :mod:`kernels.hyperelastic`; the contractions above are matrix products in torch
+(cuBLAS/MKL run them near their peak). Two assemblies give the same Hessian:
+
+- ``"per_ip"``: one [S, 3G] × [3G, 9S] product per IP, and the blocks summed into the dense
+  [3nT, 3nT] Hessian by precomputed block indices. Its work grows with K·S².
+- ``"dense"``: D scattered once into all nT shape functions, ``[K·G·3, nT]``, and the sum over
+  quadrature points done inside a single [nT, 3KG] × [3KG, 9nT] product, with no per-IP blocks to
+  write and sum. Its work grows with K·nT², so it wins when every IP sees most shape functions
+  (few, wide kernels: S close to nT), as in interactive bodies of 16 kernels.
+
+``"auto"`` takes the dense one while (nT/S)² stays below :data:`DENSE_ASSEMBLY_RATIO`. Projecting every
 quadrature point's ∂P/∂F to PSD makes every IP's Hessian block PSD.
 """
 
@@ -26,7 +34,11 @@ import torch
 
 from kernels.hyperelastic import MaterialModel, material_response
 
-__all__ = ["IPIntegral", "IPIntegrator"]
+__all__ = ["DENSE_ASSEMBLY_RATIO", "IPIntegral", "IPIntegrator"]
+
+DENSE_ASSEMBLY_RATIO = 3.0
+"""``"auto"`` assembly is dense while (nT/S)², the dense product's extra arithmetic, is below this: the per-IP
+blocks (K·S²·9 doubles) must be written, gathered and summed, which costs about as much again as their product."""
 
 
 @dataclass
@@ -61,6 +73,7 @@ class IPIntegrator:
         model: the energy density.
         response: the material-point function, :func:`kernels.hyperelastic.material_response` (the
             Warp kernel) unless a reference is swapped in for comparison.
+        assembly: ``"dense"``, ``"per_ip"`` or ``"auto"`` (module docstring).
     """
 
     def __init__(
@@ -73,6 +86,7 @@ class IPIntegrator:
         lam: torch.Tensor | float,
         model: MaterialModel,
         response=material_response,
+        assembly: str = "auto",
     ):
         K, G, S, _ = shape_grad.shape
         if index.shape != (K, S) or weight.shape != (K, G):
@@ -80,6 +94,11 @@ class IPIntegrator:
                 f"IPIntegrator: index {tuple(index.shape)}, shape_grad {tuple(shape_grad.shape)} and weight "
                 f"{tuple(weight.shape)} disagree; expected [K, S], [K, G, S, 3], [K, G]"
             )
+        if assembly not in ("auto", "dense", "per_ip"):
+            raise ValueError(f"IPIntegrator: unknown assembly {assembly!r}; use 'auto', 'dense' or 'per_ip'")
+        if assembly == "auto":
+            assembly = "dense" if (shape_count / max(S, 1)) ** 2 < DENSE_ASSEMBLY_RATIO else "per_ip"
+        self.assembly = assembly
         self.shape_count = shape_count
         self.model = MaterialModel(model)
         self.response = response
@@ -88,6 +107,19 @@ class IPIntegrator:
         self.shape_grad = (shape_grad * valid[:, None, :, None]).to(torch.float64).contiguous()
         self.weight = weight.to(torch.float64)
         self.set_material(mu, lam)
+        self.eye = torch.eye(3, dtype=torch.float64, device=shape_grad.device)
+        if assembly == "dense":
+            # D_kgt,d over all nT shape functions, zero where t does not cover IP k: [K, G, nT, 3]
+            dense = torch.zeros(K, G, shape_count, 3, dtype=torch.float64, device=shape_grad.device)
+            dense.scatter_add_(2, self.index[:, None, :, None].expand(K, G, S, 3), self.shape_grad)
+            self.dense_grad = dense
+            self._pairs = torch.triu_indices(3, 3, device=shape_grad.device)  # (a, f) with a ≤ f
+        else:
+            self._prepare_block_sums(valid)
+
+    def _prepare_block_sums(self, valid: torch.Tensor) -> None:
+        """Gather order and segment lengths of the ``"per_ip"`` assembly's block sums."""
+        shape_count = self.shape_count
         # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]. Assembly is a
         # segmented sum: the contributions of real (unpadded) pairs are gathered in order of their
         # global block, summed per block and written once. Atomic scatter-adds of doubles
@@ -98,7 +130,6 @@ class IPIntegrator:
         order = torch.argsort(block_index[contribution], stable=True)
         self._gather = contribution[order]
         self._block, self._block_lengths = torch.unique_consecutive(block_index[self._gather], return_counts=True)
-        self.eye = torch.eye(3, dtype=torch.float64, device=shape_grad.device)
 
     def set_material(self, mu: torch.Tensor | float, lam: torch.Tensor | float) -> None:
         """Change the Lamé parameters (Pa), per IP ``[K]`` or scalars."""
@@ -109,6 +140,8 @@ class IPIntegrator:
 
     def deformation_gradient(self, q: torch.Tensor) -> torch.Tensor:
         """F at every quadrature point ``[K, G, 3, 3]`` (Eq. 12 with Eq. 14)."""
+        if self.assembly == "dense":
+            return self.eye + torch.einsum("ta,kgtb->kgab", q, self.dense_grad)
         return self.eye + torch.einsum("ksa,kgsb->kgab", q[self.index], self.shape_grad)
 
     def evaluate(
@@ -128,6 +161,9 @@ class IPIntegrator:
         psi, P, dPdF = self.response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project, derivatives)
         ip_energy = (self.weight * psi.view(K, G)).sum(1)
         result = IPIntegral(ip_energy.sum(), ip_energy, torch.linalg.det(F).min())
+        if self.assembly == "dense":
+            self._dense_derivatives(result, P, dPdF, gradient, hessian)
+            return result
         if gradient or hessian:
             wP = self.weight[..., None, None] * P.view(K, G, 3, 3)
             local = torch.einsum("kgsb,kgab->ksa", self.shape_grad, wP)
@@ -146,6 +182,25 @@ class IPIntegrator:
             dense[self._block] = summed
             result.hessian = dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
         return result
+
+    def _dense_derivatives(self, result: IPIntegral, P, dPdF, gradient: bool, hessian: bool) -> None:
+        """Gradient and Hessian of the ``"dense"`` assembly (Eq. 17) from P ``[KG, 3, 3]`` and ∂P/∂F ``[KG, 9, 9]``."""
+        K, G, n, _ = self.dense_grad.shape
+        D = self.dense_grad.view(K * G, n, 3)
+        if gradient or hessian:
+            wP = self.weight.reshape(-1, 1, 1) * P  # [KG, a, b]
+            result.gradient = torch.einsum("mtb,mab->ta", D, wP)
+        if hessian:
+            wA = (self.weight.reshape(-1, 1, 1) * dPdF).view(K * G, 3, 3, 3, 3)  # [KG, a, b, f, d]
+            # Only the 6 pairs a ≤ f: H is symmetric, so block (f, a) is block (a, f) transposed.
+            # C[(kg, b), (p, t)] = Σ_d wA[a_p, b, f_p, d] D_kgt,d ; H_p[s, t] = Σ_(kg, b) D_kgs,b C[(kg, b), (p, t)]
+            first, second = self._pairs
+            C = torch.einsum("pmbd,mtd->mbpt", wA[:, first, :, second, :], D).reshape(K * G * 3, 6 * n)
+            H = (D.permute(1, 0, 2).reshape(n, K * G * 3) @ C).view(n, 6, n)
+            full = H.new_empty(n, 3, n, 3)  # [s, a, t, f]
+            full[:, second, :, first] = H.permute(1, 2, 0)
+            full[:, first, :, second] = H.permute(1, 0, 2)
+            result.hessian = full.view(3 * n, 3 * n)
 
     def assemble_blocks(self, blocks: torch.Tensor, block_index: torch.Tensor) -> torch.Tensor:
         """Sum 3×3 blocks ``[B, 9]`` (row-major a, f) at block positions ``[B]`` (s·nT + t) into a

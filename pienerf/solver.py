@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import torch
 
 from kernels import backend
+from kernels.ip_integrate import DENSE_ASSEMBLY_RATIO
 from pienerf.materials import Material
 from pienerf.model import PointHandle, QGMLSModel
 
@@ -218,8 +219,9 @@ class SolverQGMLS:
         if stiffness is None:
             stiffness = 100.0 * material.young_modulus
         self.contact_spring = stiffness * model.volume.pow(1.0 / 3.0)
-        self._eye9 = torch.eye(3, dtype=torch.float64, device=model.device).reshape(9)
+        self._eye3 = torch.eye(3, dtype=torch.float64, device=model.device)
         self._n = n
+        self._spring_cache: dict[int, tuple] = {}
 
     def rest_state(self) -> StateQGMLS:
         """The undeformed body at rest."""
@@ -238,27 +240,59 @@ class SolverQGMLS:
         """grad += Jᵀ f for forces ``force [M, 3]`` at points with shape values ``value [M, S]``."""
         grad.index_add_(0, index.reshape(-1), (value[..., None] * force[:, None, :]).reshape(-1, 3))
 
-    def _point_hessian(self, index, value, stiffness, direction) -> torch.Tensor:
-        """Σ_m k_m J_mᵀ B_m J_m for stiffnesses ``[M]`` and 3×3 blocks ``direction [M, 9]`` (I or n nᵀ)."""
-        scale = stiffness[:, None, None] * value[:, :, None] * value[:, None, :]
-        blocks = scale[..., None] * direction[:, None, None]
-        block_index = (index[:, :, None] * self._n + index[:, None, :]).reshape(-1)
-        return self.integrator.assemble_blocks(blocks.reshape(-1, 9), block_index)
+    def _point_shape_matrix(self, index, value) -> torch.Tensor:
+        """Shape values of points ``value [M, S]`` at ``index [M, S]`` scattered into ``[M, nT]`` (N_s(X_m))."""
+        rows = value.new_zeros(value.shape[0], self._n)
+        return rows.scatter_add_(1, index, value)
+
+    def _isotropic_point_hessian(self, index, value, stiffness) -> torch.Tensor:
+        """Σ_m k_m J_mᵀ J_m ``[3nT, 3nT]`` for stiffnesses ``[M]``: (Nᵀ diag(k) N) ⊗ I₃, one product."""
+        rows = self._point_shape_matrix(index, value)
+        return torch.kron((rows * stiffness[:, None]).T @ rows, self._eye3)
+
+    def _normal_point_hessian(self, index, value, stiffness, normal) -> torch.Tensor:
+        """Σ_m k_m J_mᵀ n_m n_mᵀ J_m ``[3nT, 3nT]`` for stiffnesses ``[M]`` and unit normals ``[M, 3]``.
+
+        Points that see most shape functions (S close to nT): Wᵀ W with rows W_m = √k_m (N_m ⊗ n_m), one product.
+        Otherwise (many narrow kernels, where that product's (3nT)² work per point would dominate) each point's
+        [S, S] blocks are summed into place (:meth:`kernels.ip_integrate.IPIntegrator.assemble_blocks`).
+        """
+        if (self._n / max(index.shape[1], 1)) ** 2 >= DENSE_ASSEMBLY_RATIO:
+            scale = stiffness[:, None, None] * value[:, :, None] * value[:, None, :]
+            blocks = scale[..., None] * (normal[:, :, None] * normal[:, None, :]).reshape(-1, 1, 1, 9)
+            block_index = (index[:, :, None] * self._n + index[:, None, :]).reshape(-1)
+            return self.integrator.assemble_blocks(blocks.reshape(-1, 9), block_index)
+        rows = self._point_shape_matrix(index, value)
+        weighted = (stiffness.sqrt()[:, None, None] * rows[:, :, None] * normal[:, None, :]).reshape(len(rows), -1)
+        return weighted.T @ weighted
+
+    def _spring_hessian(self, springs: list[PointTargets]) -> torch.Tensor | None:
+        """Σ over springs of k Jᵀ J (constant: the springs are quadratic, and their Hessian does not depend on the
+        targets). Jᵀ J of each handle is kept between steps while the same handle object, unchanged in place, comes
+        back, so pins held over many steps cost one product each, once; a drag moving its target reuses its own."""
+        cache, H = {}, None
+        for spring in springs:
+            handle = spring.handle
+            versions = (handle.index._version, handle.value._version)
+            entry = cache.get(id(handle)) or self._spring_cache.get(id(handle))
+            if entry is None or entry[0] is not handle or entry[1] != versions:
+                ones = torch.ones_like(handle.value[:, 0])
+                entry = (handle, versions, self._isotropic_point_hessian(handle.index, handle.value, ones))
+            cache[id(handle)] = entry
+            part = entry[2] * spring.stiffness
+            H = part if H is None else H.add_(part)
+        self._spring_cache = cache  # handles no longer used are let go
+        return H
 
     def _spring_terms(self, springs: list[PointTargets], q: torch.Tensor, hessian: bool):
         energy = q.new_zeros(())
         grad = torch.zeros_like(q)
-        H = None
         for spring in springs:
             h = spring.handle
             r = h.positions(q) - spring.target
             energy = energy + 0.5 * spring.stiffness * (r * r).sum()
             self._point_gradient(grad, h.index, h.value, spring.stiffness * r)
-            if hessian:
-                stiffness = torch.full_like(h.value[:, 0], spring.stiffness)
-                part = self._point_hessian(h.index, h.value, stiffness, self._eye9.expand(len(stiffness), 9))
-                H = part if H is None else H + part
-        return energy, grad, H
+        return energy, grad, self._spring_hessian(springs) if hessian else None
 
     def _contact_terms(self, colliders, q: torch.Tensor, hessian: bool):
         energy = q.new_zeros(())
@@ -290,7 +324,7 @@ class SolverQGMLS:
             self._point_gradient(grad, index, value, (k * p)[:, None] * nrm)  # ∂E/∂x = k φ n
             if hessian:
                 # Gauss–Newton block k n nᵀ (exact for planes; drops the sphere's curvature term)
-                part = self._point_hessian(index, value, k, (nrm[:, :, None] * nrm[:, None, :]).reshape(-1, 9))
+                part = self._normal_point_hessian(index, value, k, nrm)
                 H = part if H is None else H + part
         return energy, grad, H
 
@@ -312,10 +346,14 @@ class SolverQGMLS:
 
     # -- the step --------------------------------------------------------------------------
 
+    @backend.one_torch_thread_on_cpu()
     def step(self, state_in: StateQGMLS, state_out: StateQGMLS, control: ControlQGMLS, dt: float) -> StepReport:
         """Advance one implicit Euler step of ``dt`` seconds from ``state_in`` into ``state_out``.
 
-        ``state_out`` may be ``state_in``. Returns the step's statistics and time breakdown.
+        ``state_out`` may be ``state_in``. Returns the step's statistics and time breakdown. On the CPU torch runs on
+        one thread meanwhile (:func:`kernels.backend.one_torch_thread_on_cpu`): a step is a few hundred small tensor
+        operations around one product and one factorisation of a few hundred rows, and waking, or on shared cores
+        waiting for, a second thread at each of them costs more than it saves.
         """
         self._check_step_inputs(state_in, control, dt)
         report = StepReport()

@@ -86,3 +86,15 @@ def test_an_unwritable_json_path_is_refused_before_any_work(tmp_path, capsys):
         err = capsys.readouterr().err
         assert message in err and "copy_torch on" not in err, err
     assert taken.read_text() == "a file"
+
+
+def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
+    """The viewer's frame gives its step and its render apart; the Q-GMLS step runs beside its torch reference."""
+    records = bench.main(
+        ["--workload", "viewer_frame,qgmls_step", "--device", device, "--size", "smoke", "--reps", "2"]
+    )
+    by_name = {r["workload"]: r for r in records}
+    viewer, step = by_name["viewer_frame"], by_name["qgmls_step"]
+    assert viewer["params"]["size"] == "160x120" and viewer["unit"] == "frames/s"
+    assert viewer["step_median_s"] > 0 and viewer["render_median_s"] > 0
+    assert step["reference_median_s"] > 0 and step["time_assembly_s"] > 0

@@ -17,12 +17,16 @@ def _problem(seed=0, K=4, G=3, S=5, n=7):
     return index, shape_grad, weight, q, n
 
 
+ASSEMBLIES = ["dense", "per_ip"]
+
+
+@pytest.mark.parametrize("assembly", ASSEMBLIES)
 @pytest.mark.parametrize("model", list(MaterialModel), ids=lambda m: m.name.lower())
-def test_energy_gradient_hessian_match_autograd(device, model):
+def test_energy_gradient_hessian_match_autograd(device, model, assembly):
     index, shape_grad, weight, q, n = _problem()
     mu, lam = 2.0, 5.0
     dev = backend.torch_device()
-    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, mu, lam, model)
+    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, mu, lam, model, assembly=assembly)
     result = integrator.evaluate(q.to(dev), project=False)
     energy = reference.ip_energy(q, index, shape_grad, weight, mu, lam, model)
     torch.testing.assert_close(result.energy.cpu(), energy, rtol=1e-10, atol=1e-12)
@@ -32,12 +36,13 @@ def test_energy_gradient_hessian_match_autograd(device, model):
     torch.testing.assert_close(result.hessian.cpu(), H, rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.parametrize("assembly", ASSEMBLIES)
 @pytest.mark.parametrize("model", [MaterialModel.NEO_HOOKEAN, MaterialModel.ARAP], ids=["neo_hookean", "arap"])
-def test_projected_hessian_is_psd_and_matches_reference(device, model):
+def test_projected_hessian_is_psd_and_matches_reference(device, model, assembly):
     index, shape_grad, weight, q, n = _problem(seed=3)
     q = 8 * q  # large strains: indefinite unprojected Hessian
     dev = backend.torch_device()
-    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, 1.0, 3.0, model)
+    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, 1.0, 3.0, model, assembly=assembly)
     result = integrator.evaluate(q.to(dev), project=True)
     assert result.min_det.item() > 0
     H = reference.ip_hessian(q, index, shape_grad, weight, 1.0, 3.0, model, project=True)
@@ -45,10 +50,13 @@ def test_projected_hessian_is_psd_and_matches_reference(device, model):
     assert torch.linalg.eigvalsh(result.hessian.cpu()).min().item() > -1e-9
 
 
-def test_gradient_matches_finite_differences_of_energy(device):
+@pytest.mark.parametrize("assembly", ASSEMBLIES)
+def test_gradient_matches_finite_differences_of_energy(device, assembly):
     index, shape_grad, weight, q, n = _problem(seed=5)
     dev = backend.torch_device()
-    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, 1.0, 1.0, MaterialModel.STVK)
+    integrator = IPIntegrator(
+        index.to(dev), shape_grad.to(dev), weight.to(dev), n, 1.0, 1.0, MaterialModel.STVK, assembly=assembly
+    )
     q = q.to(dev)
     grad = integrator.evaluate(q, hessian=False).gradient
     h = 1e-6
@@ -64,3 +72,9 @@ def test_mismatched_shapes_are_refused(device):
     index, shape_grad, weight, _, n = _problem()
     with pytest.raises(ValueError, match="disagree"):
         IPIntegrator(index[:, :3], shape_grad, weight, n, 1.0, 1.0, MaterialModel.ARAP)
+
+
+def test_unknown_assembly_is_refused(device):
+    index, shape_grad, weight, _, n = _problem()
+    with pytest.raises(ValueError, match="unknown assembly"):
+        IPIntegrator(index, shape_grad, weight, n, 1.0, 1.0, MaterialModel.ARAP, assembly="sparse")
