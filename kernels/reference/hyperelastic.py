@@ -50,7 +50,7 @@ def material_response(
         x = Fm.reshape(9)
         psi.append(energy(x))
         P.append(torch.func.grad(energy)(x).reshape(3, 3))
-        H = torch.func.hessian(energy)(x)
+        H = torch.func.jacrev(torch.func.jacrev(energy))(x)  # reverse over reverse: no TorchScript
         H = 0.5 * (H + H.T)
         if project:
             w, Q = torch.linalg.eigh(H)
@@ -79,7 +79,7 @@ def material_response_batched(
     P = torch.func.vmap(torch.func.grad(energy))(flat, mu, lam).reshape(-1, 3, 3)
     if derivatives < 2:
         return psi, P, None
-    H = torch.func.vmap(torch.func.hessian(energy))(flat, mu, lam)
+    H = torch.func.vmap(torch.func.jacrev(torch.func.jacrev(energy)))(flat, mu, lam)
     H = 0.5 * (H + H.mT)
     if project:
         w, Q = torch.linalg.eigh(H)

@@ -40,8 +40,9 @@ def ip_hessian(q, index, shape_grad, weight, mu, lam, model, project: bool) -> t
     reference's eigen-projected A⁺ and the explicit B = ∂vec(F)/∂q."""
     n = q.shape[0]
     if not project:
-        H = torch.func.hessian(lambda x: ip_energy(x.view(n, 3), index, shape_grad, weight, mu, lam, model))
-        return H(q.reshape(-1))
+        energy = lambda x: ip_energy(x.view(n, 3), index, shape_grad, weight, mu, lam, model)  # noqa: E731
+        # reverse over reverse: torch.func.hessian's forward mode loads decompositions through deprecated TorchScript
+        return torch.func.jacrev(torch.func.jacrev(energy))(q.reshape(-1))
     F = _deformation_gradients(q, index, shape_grad)
     _, _, A = material_response(F, torch.as_tensor(mu), torch.as_tensor(lam), model, project=True)
     H = torch.zeros(3 * n, 3 * n, dtype=q.dtype)
