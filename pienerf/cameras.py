@@ -12,7 +12,7 @@ import torch
 
 from pienerf.data import Cameras
 
-__all__ = ["look_at_cameras", "orbit_cameras", "quaternion_matrix", "viser_cameras"]
+__all__ = ["look_at_cameras", "orbit_cameras", "pinhole_camera", "quaternion_matrix", "viser_cameras"]
 
 
 def orbit_cameras(
@@ -98,10 +98,22 @@ def viser_cameras(position, wxyz, fov: float, aspect: float, height: int) -> Cam
     rotation = quaternion_matrix(wxyz) @ np.diag([1.0, -1.0, -1.0])  # OpenCV → OpenGL camera axes
     c2w = np.eye(4)
     c2w[:3, :3], c2w[:3, 3] = rotation, _finite(position, 3, "camera position")
+    return pinhole_camera(c2w, fov, aspect, height)
+
+
+def pinhole_camera(c2w, fov: float, aspect: float, height: int) -> Cameras:
+    """One centred pinhole view of camera-to-world ``c2w [4, 4]`` (OpenGL axes: looking along −z, y up, m).
+
+    Args:
+        c2w: the camera's pose.
+        fov: vertical field of view, radians.
+        aspect: image width over height.
+        height: image height, pixels (the width follows from ``aspect``).
+    """
     width = max(1, int(round(height * aspect)))
     focal = torch.tensor([0.5 * height / math.tan(0.5 * fov)])
     return Cameras(
-        torch.tensor(c2w, dtype=torch.float32)[None],
+        torch.as_tensor(np.asarray(c2w), dtype=torch.float32)[None],
         focal,
         focal.clone(),
         torch.tensor([0.5 * width]),

@@ -40,6 +40,7 @@ from meshcat.commands import SetObject, SetProperty, SetTransform
 from meshcat.path import Path
 from PIL import Image
 
+from pienerf.cameras import pinhole_camera
 from pienerf.data import Cameras
 from pienerf.preview import RefinementSchedule
 from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, si_text
@@ -96,18 +97,7 @@ def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
         raise ValueError("camera matrix must have an orthonormal rotation (no scale)")
     fov = _number(fov, "camera fov (deg)", 1.0, 179.0)
     aspect = _number(aspect, "camera aspect", 0.05, 20.0)
-    height = max(1, int(height))
-    width = max(1, int(round(height * aspect)))
-    focal = torch.tensor([0.5 * height / math.tan(0.5 * math.radians(fov))])
-    return Cameras(
-        torch.tensor(c2w, dtype=torch.float32)[None],
-        focal,
-        focal.clone(),
-        torch.tensor([0.5 * width]),
-        torch.tensor([0.5 * height]),
-        width,
-        height,
-    )
+    return pinhole_camera(c2w, math.radians(fov), aspect, max(1, int(height)))
 
 
 def _vertices_command(path: Path, positions: np.ndarray) -> dict:
