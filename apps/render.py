@@ -59,7 +59,9 @@ from __future__ import annotations
 import argparse
 import errno
 import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -158,6 +160,36 @@ def _save_png(image: np.ndarray, path: Path) -> None:
         Image.fromarray(image).save(temporary)
 
 
+class _StopBetweenFrames:
+    """Ctrl-C while frames are written stops the render at the end of the frame in hand, never inside a write.
+
+    A ``KeyboardInterrupt`` raised inside the video writer makes imageio-ffmpeg kill its encoder, which leaves an
+    MP4 without its index: the first Ctrl-C only asks for a stop, which :meth:`check` raises between frames; a second
+    Ctrl-C interrupts at once, as usual. Off the main thread (no signal handlers there) it does nothing.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._previous = None
+
+    def __enter__(self) -> _StopBetweenFrames:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._request)
+        return self
+
+    def _request(self, signum, frame) -> None:
+        self.requested = True
+        signal.signal(signal.SIGINT, self._previous)  # a second Ctrl-C stops at once
+
+    def check(self) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+
+    def __exit__(self, *exc) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+
+
 def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: dict, written: dict) -> None:
     """Step and render every frame, writing the tiled PNGs and the video.
 
@@ -166,13 +198,11 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
     place when the frames end, or when Ctrl-C stops them (it then holds the finished frames); a failed write
     removes it.
     """
-    frames, substeps = frame_count(scenario)
+    _, substeps = frame_count(scenario)
     samples = volume_sample_frames(scenario)
-    labelled = len(runs) > 1 or any(len(run.modes) > 1 for run in runs)
     for folder in ("frames", "depth", "shadow"):
         if outputs[folder]:
             (out / folder).mkdir(exist_ok=True)
-    dt = runs[0].simulation.config.dt * substeps
     step_seconds = {run.name: [] for run in runs}
     per_frame = []
     written.update(
@@ -185,24 +215,10 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
             video, fps=outputs["fps"], codec="libx264", quality=7, macro_block_size=1, pixelformat="yuv420p"
         )
     keep_video = False
+    stop = _StopBetweenFrames()
     try:
-        for frame in range(frames + 1):
-            t = frame * dt
-            tiles, record = [], {"frame": frame, "time_s": t}
-            for run in runs:
-                if frame > 0:
-                    step_seconds[run.name] += advance(run, scenario, t, substeps)
-                record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, frame)
-                start = time.perf_counter()
-                tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled)
-                written["render_seconds"] += time.perf_counter() - start
-            image = torch.cat(tiles, dim=1)
-            rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
-            if outputs["frames"]:
-                _save_png(_to_uint8(image), out / "frames" / f"frame_{frame:04d}.png")
-            if writer is not None:
-                writer.append_data(_to_uint8(rgb))
-            per_frame.append(record)
+        with stop:
+            _render_frames(scenario, runs, out, outputs, written, writer, stop)
         keep_video = True
     except KeyboardInterrupt:
         keep_video = bool(per_frame)
@@ -216,6 +232,32 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
                     os.replace(video, out / "video.mp4")
                 else:
                     video.unlink(missing_ok=True)
+
+
+def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBetweenFrames) -> None:
+    """The frame loop of :func:`_write_frames`: step, render, write; a requested stop is taken between frames."""
+    frames, substeps = frame_count(scenario)
+    samples, per_frame, step_seconds = written["samples"], written["per_frame"], written["step_seconds"]
+    labelled = len(runs) > 1 or any(len(run.modes) > 1 for run in runs)
+    dt = runs[0].simulation.config.dt * substeps
+    for frame in range(frames + 1):
+        t = frame * dt
+        tiles, record = [], {"frame": frame, "time_s": t}
+        for run in runs:
+            if frame > 0:
+                step_seconds[run.name] += advance(run, scenario, t, substeps)
+            record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, frame)
+            start = time.perf_counter()
+            tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled)
+            written["render_seconds"] += time.perf_counter() - start
+        image = torch.cat(tiles, dim=1)
+        rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
+        if outputs["frames"]:
+            _save_png(_to_uint8(image), out / "frames" / f"frame_{frame:04d}.png")
+        if writer is not None:
+            writer.append_data(_to_uint8(rgb))
+        per_frame.append(record)
+        stop.check()
 
 
 def _finished_metrics(runs: list[ScenarioRun], written: dict) -> dict:
