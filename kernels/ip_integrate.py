@@ -13,7 +13,9 @@ precomputed once. Then (Eq. 16–17)
 Each IP only touches the S shape functions whose kernels cover it, so its Hessian is a dense
 [S·3, S·3] block. The material response (SVD, stress, eigen-projected ∂P/∂F) runs in the Warp
 kernel of :mod:`kernels.hyperelastic`; the contractions above are matrix products in torch
-(cuBLAS/MKL run them near their peak). Two assemblies give the same Hessian:
+(cuBLAS/MKL run them near their peak); on CUDA the per-IP blocks are summed into place by a Warp kernel.
+On CUDA nothing here reads the device from the host, so an evaluation can be captured in a CUDA graph.
+Two assemblies give the same Hessian:
 
 - ``"per_ip"``: one [S, 3G] × [3G, 9S] product per IP, and the blocks summed into the dense
   [3nT, 3nT] Hessian by precomputed block indices. Its work grows with K·S².
@@ -31,8 +33,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import warp as wp
 
+from kernels import backend
 from kernels.hyperelastic import MaterialModel, material_response
+
+wp.set_module_options({"enable_backward": False})
 
 __all__ = ["DENSE_ASSEMBLY_RATIO", "IPIntegral", "IPIntegrator"]
 
@@ -130,6 +136,13 @@ class IPIntegrator:
         order = torch.argsort(block_index[contribution], stable=True)
         self._gather = contribution[order]
         self._block, self._block_lengths = torch.unique_consecutive(block_index[self._gather], return_counts=True)
+        K, G, S, _ = self.shape_grad.shape
+        self._shape_grad_rows = self.shape_grad.permute(0, 2, 1, 3).reshape(K, S, G * 3).contiguous()  # [K, S, 3G]
+        # the same sums as one Warp launch on CUDA (torch's segment_reduce reads the device from the host, which a
+        # CUDA graph forbids), each block's sum written straight to its place in the dense Hessian
+        self._block_start = torch.cat([self._block_lengths.new_zeros(1), self._block_lengths.cumsum(0)]).to(torch.int32)
+        self._gather32 = self._gather.to(torch.int32)
+        self._block32 = self._block.to(torch.int32)
 
     def set_material(self, mu: torch.Tensor | float, lam: torch.Tensor | float) -> None:
         """Change the Lamé parameters (Pa), per IP ``[K]`` or scalars."""
@@ -160,7 +173,7 @@ class IPIntegrator:
         derivatives = 2 if hessian else (1 if gradient else 0)
         psi, P, dPdF = self.response(F.reshape(-1, 3, 3), self.mu, self.lam, self.model, project, derivatives)
         ip_energy = (self.weight * psi.view(K, G)).sum(1)
-        result = IPIntegral(ip_energy.sum(), ip_energy, torch.linalg.det(F).min())
+        result = IPIntegral(ip_energy.sum(), ip_energy, _det3(F).min())
         if self.assembly == "dense":
             self._dense_derivatives(result, P, dPdF, gradient, hessian)
             return result
@@ -174,14 +187,31 @@ class IPIntegrator:
             # C_kgt[a, b, f] = Σ_d wA[a, b, f, d] D_kgt,d ; H_k[s, t, a, f] = Σ_gb D_kgs,b C_kgt[a, b, f]
             C = torch.einsum("kgabfd,kgtd->kgbtaf", wA, self.shape_grad)
             blocks = torch.bmm(
-                self.shape_grad.permute(0, 2, 1, 3).reshape(K, S, G * 3), C.reshape(K, G * 3, S * 9)
+                self._shape_grad_rows, C.reshape(K, G * 3, S * 9)
             )
-            summed = torch.segment_reduce(blocks.reshape(-1, 9)[self._gather], "sum", lengths=self._block_lengths)
-            n = self.shape_count
-            dense = torch.zeros(n * n, 9, dtype=torch.float64, device=q.device)
-            dense[self._block] = summed
-            result.hessian = dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
+            result.hessian = self._sum_blocks(blocks.reshape(-1, 9))
         return result
+
+    def _sum_blocks(self, blocks: torch.Tensor, warp_kernel: bool | None = None) -> torch.Tensor:
+        """The dense ``[3nT, 3nT]`` Hessian from the per-IP 3×3 blocks ``[K·S·S, 9]`` (``"per_ip"`` assembly), by the
+        Warp kernel (``warp_kernel``; ``None``: on CUDA) or by torch's segmented sum (on the CPU, as fast and
+        already there)."""
+        n = self.shape_count
+        if blocks.is_cuda if warp_kernel is None else warp_kernel:
+            hessian = torch.zeros(3 * n, 3 * n, dtype=torch.float64, device=blocks.device)
+            wp.launch(
+                _sum_blocks_kernel,
+                dim=(self._block32.shape[0], 9),
+                inputs=[backend.to_warp(blocks), backend.to_warp(self._gather32), backend.to_warp(self._block_start),
+                        backend.to_warp(self._block32), n],
+                outputs=[backend.to_warp(hessian)],
+                device=backend.warp_device(),
+            )
+            return hessian
+        summed = torch.segment_reduce(blocks[self._gather], "sum", lengths=self._block_lengths)
+        dense = torch.zeros(n * n, 9, dtype=torch.float64, device=blocks.device)
+        dense[self._block] = summed
+        return dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
 
     def _dense_derivatives(self, result: IPIntegral, P, dPdF, gradient: bool, hessian: bool) -> None:
         """Gradient and Hessian of the ``"dense"`` assembly (Eq. 17) from P ``[KG, 3, 3]`` and ∂P/∂F ``[KG, 9, 9]``."""
@@ -209,3 +239,31 @@ class IPIntegrator:
         dense = torch.zeros(n * n, 9, dtype=torch.float64, device=blocks.device)
         dense.index_add_(0, block_index, blocks)
         return dense.view(n, n, 3, 3).permute(0, 2, 1, 3).reshape(3 * n, 3 * n)
+
+
+@wp.kernel
+def _sum_blocks_kernel(
+    blocks: wp.array2d(dtype=wp.float64),
+    gather: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    block: wp.array(dtype=wp.int32),
+    n: int,
+    hessian: wp.array2d(dtype=wp.float64),
+):
+    """Entry ``c`` of global block ``b``: the sum of its contributions ``blocks[gather[start[b]:start[b + 1]], c]``,
+    written at row 3s + c // 3, column 3t + c % 3 of the Hessian, for the block's shape pair s·n + t."""
+    b, c = wp.tid()
+    total = wp.float64(0.0)
+    for j in range(start[b], start[b + 1]):
+        total += blocks[gather[j], c]
+    s = block[b] // n
+    t = block[b] - s * n
+    hessian[3 * s + c // 3, 3 * t + c % 3] = total
+
+
+def _det3(F: torch.Tensor) -> torch.Tensor:
+    """det of 3×3 matrices ``[..., 3, 3]`` by cofactors: elementwise, so no LU factorisation, no library handle and
+    nothing a CUDA graph capture forbids."""
+    return (F[..., 0, 0] * (F[..., 1, 1] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 1])
+            - F[..., 0, 1] * (F[..., 1, 0] * F[..., 2, 2] - F[..., 1, 2] * F[..., 2, 0])
+            + F[..., 0, 2] * (F[..., 1, 0] * F[..., 2, 1] - F[..., 1, 1] * F[..., 2, 0]))

@@ -17,7 +17,8 @@ __all__ = ["TimeBreakdown", "VolumeHistory", "plot_time_breakdown", "plot_volume
 
 @dataclass
 class TimeBreakdown:
-    """Accumulated seconds per phase of the run (assembly, solve, other; warping where rendered)."""
+    """Accumulated seconds per phase of the run (assembly, solve, other; warping where rendered; the device loop's
+    steps as a whole, :meth:`pienerf.solver.SolverQGMLS.step`)."""
 
     seconds: dict[str, float] = field(default_factory=lambda: {"assembly": 0.0, "solve": 0.0, "other": 0.0})
     steps: int = 0
@@ -28,6 +29,8 @@ class TimeBreakdown:
         self.seconds["assembly"] += report.time_assembly
         self.seconds["solve"] += report.time_solve
         self.seconds["other"] += report.time_other
+        if report.device_loop:  # the phases ran as one graph, timed as a whole
+            self.add_phase("device loop", report.time_device_loop)
         self.steps += 1
         self.newton_iterations += report.iterations
 

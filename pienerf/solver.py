@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import torch
@@ -60,6 +61,12 @@ class SolverConfig:
         contact_stiffness: penalty modulus of colliders (Pa); a particle of volume V gets a spring of
             stiffness contact_stiffness · V^(1/3) (N/m). ``None`` → 100 × Young's modulus.
         project_hessian: make every quadrature point's Hessian PSD (kernels.hyperelastic).
+        device_loop: run each step's Newton loop with no host read inside it (:meth:`SolverQGMLS.step`), captured
+            once per set of controls and replayed as one CUDA graph. ``None``: on CUDA only (on the CPU, where a
+            launch costs little, the loop that stops early is faster); ``True`` on the CPU runs the same loop
+            uncaptured.
+        line_search_batch: trial steps (1, 1/2, 1/4, …) the device loop evaluates per Newton iteration; a step
+            that needs more halvings is redone by the host loop.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -71,6 +78,8 @@ class SolverConfig:
     line_search_steps: int = 20
     contact_stiffness: float | None = None
     project_hessian: bool = True
+    device_loop: bool | None = None
+    line_search_batch: int = 3
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
@@ -85,6 +94,8 @@ class SolverConfig:
         if self.contact_stiffness is not None and not self.contact_stiffness > 0:
             raise ValueError(f"contact_stiffness must be > 0 Pa (or None for 100 × Young's modulus), got "
                              f"{self.contact_stiffness!r}")
+        if self.line_search_batch < 1:
+            raise ValueError("line_search_batch must be >= 1")
         if self.hessian_updates is not None and self.hessian_updates < 1:
             raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
 
@@ -169,6 +180,8 @@ class StepReport:
             step), ``"no decrease"`` (finite trials, none decreasing the energy enough) or ``"not finite"``
             (the Newton direction or the trial energies were NaN). The body then stays where the failed
             iteration started: the step is not a solution of Eq. 2.
+        device_loop: the step ran as the device loop (:meth:`SolverQGMLS.step`); its phases are then not timed
+            apart, and ``time_device_loop`` holds the whole step.
     """
 
     iterations: int = 0
@@ -181,6 +194,8 @@ class StepReport:
     time_assembly: float = 0.0
     time_solve: float = 0.0
     time_other: float = 0.0
+    device_loop: bool = False
+    time_device_loop: float = 0.0
 
     @property
     def line_search_failed(self) -> bool:
@@ -201,6 +216,7 @@ class SolverQGMLS:
         self.model = model
         self.config = config
         self.integrator = model.integrator(material)
+        self.device_loop_redos = 0  # device-loop steps the host loop redid (:meth:`step`)
         self.set_material(material)
 
     def set_material(self, material: Material) -> None:
@@ -222,6 +238,7 @@ class SolverQGMLS:
         self._eye3 = torch.eye(3, dtype=torch.float64, device=model.device)
         self._n = n
         self._spring_cache: dict[int, tuple] = {}
+        self._device_loops: OrderedDict[tuple, _DeviceLoop] = OrderedDict()  # graphs hold the material as it was
 
     def rest_state(self) -> StateQGMLS:
         """The undeformed body at rest."""
@@ -354,8 +371,27 @@ class SolverQGMLS:
         one thread meanwhile (:func:`kernels.backend.one_torch_thread_on_cpu`): a step is a few hundred small tensor
         operations around one product and one factorisation of a few hundred rows, and waking, or on shared cores
         waiting for, a second thread at each of them costs more than it saves.
+
+        Two loops compute the same step. The host loop stops as soon as Newton converges and halves a rejected
+        step until one is accepted, reading the device at each decision. The device loop (``config.device_loop``,
+        on CUDA by default) makes no read: it runs every Newton iteration, masking those after convergence, tries
+        ``config.line_search_batch`` step lengths at once and keeps the longest acceptable one, and is replayed as
+        one CUDA graph; the step's statistics are read once, at its end. Where the host loop would do something
+        else (more halvings, a failed line search, a singular Newton matrix) the device loop's result is dropped
+        and the host loop redoes the step, so both give the same state and the same report.
         """
         self._check_step_inputs(state_in, control, dt)
+        use_device_loop = self.config.device_loop
+        if use_device_loop is None:
+            use_device_loop = self.model.device.type == "cuda"
+        if use_device_loop:
+            report = self._device_loop_step(state_in, state_out, control, dt)
+            if report is not None:
+                return report
+        return self._host_loop_step(state_in, state_out, control, dt)
+
+    def _host_loop_step(self, state_in: StateQGMLS, state_out: StateQGMLS, control: ControlQGMLS, dt) -> StepReport:
+        """The step with the host in the loop (:meth:`step`)."""
         report = StepReport()
         config = self.config
         clock = time.perf_counter()
@@ -391,9 +427,9 @@ class SolverQGMLS:
                 grad = grad + beta * inv_h * (damping_K @ dx.reshape(-1)).view_as(q)
             if fresh:
                 H = elastic.hessian
-                H += (inv_h2 + alpha * inv_h) * self.mass_flat
+                H.add_(self.mass_flat, alpha=inv_h2 + alpha * inv_h)
                 if damping_K is not None:
-                    H += beta * inv_h * damping_K
+                    H.add_(damping_K, alpha=beta * inv_h)
                 if spring_H is not None:
                     H += spring_H
                 if contact_H is not None:
@@ -447,6 +483,49 @@ class SolverQGMLS:
         state_out.time = state_in.time + dt
         report.time_other += time.perf_counter() - clock
         return report
+
+    # -- the device loop ----------------------------------------------------------------------
+
+    def _device_loop_step(self, state_in: StateQGMLS, state_out: StateQGMLS, control: ControlQGMLS, dt):
+        """The step by the device loop (:meth:`step`); ``None`` where the host loop must redo it."""
+        clock = time.perf_counter()
+        loop = self._device_loop_for(control, float(dt))
+        loop.load(state_in, control)
+        q, qd, stats = loop.call()
+        iterations, energy, last_update, min_det, halvings, converged, redo = stats.tolist()  # the one read
+        if redo:
+            self.device_loop_redos += 1
+            return None
+        state_out.q.copy_(q)
+        state_out.qd.copy_(qd)
+        state_out.time = state_in.time + dt
+        return StepReport(
+            iterations=int(iterations), energy=energy, last_update=last_update, min_det=min_det,
+            line_search_halvings=int(halvings), converged=bool(converged), device_loop=True,
+            time_device_loop=time.perf_counter() - clock,
+        )
+
+    def _device_loop_for(self, control: ControlQGMLS, dt: float) -> _DeviceLoop:
+        """The captured loop for this set of springs, forces and collider kinds at this ``dt`` (built on first use;
+        the last few are kept, so that a drag that starts and stops switches between two graphs)."""
+        key = (
+            dt,
+            tuple((id(s.handle), s.handle.index._version, s.handle.value._version) for s in control.springs),
+            tuple((id(f.handle), f.handle.index._version, f.handle.value._version) for f in control.forces),
+            tuple(type(c) for c in control.colliders),
+        )
+        loop = self._device_loops.pop(key, None)
+        if loop is None:
+            loop = _DeviceLoop(self, control, dt)
+            while len(self._device_loops) >= _DEVICE_LOOPS_KEPT:
+                self._device_loops.popitem(last=False)
+        self._device_loops[key] = loop  # most recently used last
+        return loop
+
+    def _displacement_tensor(self, dq: torch.Tensor) -> torch.Tensor:
+        """:meth:`_displacement_norm` as a 0-d tensor, read by no one on the host."""
+        shape = self.model.ip_shape
+        return torch.einsum("ks,ksa->ka", shape.value, dq[shape.index.clamp_min(0)]).abs().max()
 
     def _check_step_inputs(self, state: StateQGMLS, control: ControlQGMLS, dt) -> None:
         """Refuse a step whose inputs are not finite (NaN/inf would reach the energy and freeze the body silently)
@@ -540,6 +619,186 @@ class SolverQGMLS:
             if update < self.config.newton_tolerance:
                 break
         return q, update
+
+
+_DEVICE_LOOPS_KEPT = 3
+"""Captured device loops a solver keeps (each holds its own copy of the Newton matrix and its factor)."""
+
+
+class _DeviceLoop:
+    """One step of :meth:`SolverQGMLS.step` with no host read, over buffers that stay put, captured on CUDA.
+
+    What changes from step to step is copied into the buffers by :meth:`load`: the state, the spring targets and
+    stiffnesses, the point forces and the collider placements. What the graph holds as it was at capture (and what
+    therefore picks another loop, :meth:`SolverQGMLS._device_loop_for`): ``dt``, the material, the settings, the
+    springs' and forces' material points and the colliders' kinds.
+    """
+
+    def __init__(self, solver: SolverQGMLS, control: ControlQGMLS, dt: float):
+        model = solver.model
+        n, device = model.shape_count, model.device
+        self.solver, self.dt = solver, dt
+        self.q_n = torch.zeros(n, 3, dtype=torch.float64, device=device)
+        self.v_n = torch.zeros_like(self.q_n)
+        self.spring_handles = [s.handle for s in control.springs]
+        self.targets = [torch.zeros_like(s.target, dtype=torch.float64) for s in control.springs]
+        self.stiffness = torch.zeros(len(control.springs), dtype=torch.float64, device=device)
+        # Jᵀ J of each spring (unit stiffness): the springs are quadratic, so this is all their Hessian needs
+        self.spring_jtj = [
+            solver._isotropic_point_hessian(h.index, h.value, torch.ones_like(h.value[:, 0]))
+            for h in self.spring_handles
+        ]
+        self.force_handles = [f.handle for f in control.forces]
+        self.forces = [torch.zeros_like(f.force, dtype=torch.float64) for f in control.forces]
+        self.collider_kinds = [type(c) for c in control.colliders]
+        self.colliders = [torch.zeros(6 if kind is PlaneCollider else 4, dtype=torch.float64, device=device)
+                          for kind in self.collider_kinds]
+        trials = min(solver.config.line_search_batch, solver.config.line_search_steps)
+        self.trial_lengths = [0.5**j for j in range(trials)]  # 1, 1/2, 1/4, …: the host loop's first trials
+        self.step_lengths = torch.tensor(self.trial_lengths, dtype=torch.float64, device=device)
+        self.call = backend.CapturedCall(self._newton)
+
+    def load(self, state: StateQGMLS, control: ControlQGMLS) -> None:
+        """Copy this step's inputs into the buffers the graph reads."""
+        self.q_n.copy_(state.q)
+        self.v_n.copy_(state.qd)
+        for buffer, spring in zip(self.targets, control.springs, strict=True):
+            buffer.copy_(spring.target)
+        if control.springs:
+            stiffness = [float(s.stiffness) for s in control.springs]
+            self.stiffness.copy_(torch.tensor(stiffness, dtype=torch.float64))
+        for buffer, forces in zip(self.forces, control.forces, strict=True):
+            buffer.copy_(forces.force)
+        for buffer, collider in zip(self.colliders, control.colliders, strict=True):
+            if isinstance(collider, PlaneCollider):
+                normal = torch.tensor(collider.normal, dtype=torch.float64)
+                values = torch.cat([torch.tensor(collider.point, dtype=torch.float64), normal / normal.norm()])
+            else:
+                values = torch.tensor([*collider.centre, collider.radius], dtype=torch.float64)
+            buffer.copy_(values)
+
+    def _springs(self, x: torch.Tensor, gradient: bool):
+        """Energy (and gradient) of the springs at ``x``."""
+        energy, grad = x.new_zeros(()), torch.zeros_like(x) if gradient else None
+        for k, (handle, target) in enumerate(zip(self.spring_handles, self.targets, strict=True)):
+            r = handle.positions(x) - target
+            energy = energy + 0.5 * self.stiffness[k] * (r * r).sum()
+            if gradient:
+                self.solver._point_gradient(grad, handle.index, handle.value, self.stiffness[k] * r)
+        return energy, grad
+
+    def _contacts(self, x_q: torch.Tensor, gradient: bool, hessian: bool):
+        """The collider penalty of :meth:`SolverQGMLS._contact_terms` over every particle, the ones not in contact
+        contributing zero, so that no mask is read."""
+        solver, particles = self.solver, self.solver.model.particles
+        energy, grad, H = x_q.new_zeros(()), torch.zeros_like(x_q) if gradient else None, None
+        if not self.colliders:
+            return energy, grad, H
+        x = particles.positions(x_q)
+        k = solver.contact_spring
+        for kind, values in zip(self.collider_kinds, self.colliders, strict=True):
+            if kind is PlaneCollider:
+                phi = (x - values[:3]) @ values[3:]
+                normals = values[3:].expand_as(x)
+            else:
+                d = x - values[:3]
+                dist = d.norm(dim=1).clamp_min(1e-12)
+                phi = dist - values[3]
+                normals = d / dist[:, None]
+            depth = phi.clamp(max=0.0)
+            energy = energy + 0.5 * (k * depth * depth).sum()
+            if gradient:
+                solver._point_gradient(grad, particles.index, particles.value, (k * depth)[:, None] * normals)
+            if hessian:
+                part = solver._normal_point_hessian(particles.index, particles.value, k * (phi < 0), normals)
+                H = part if H is None else H + part
+        return energy, grad, H
+
+    def _newton(self):
+        """The Newton loop of the host loop, every decision a tensor: returns q, q̇ and the step's statistics."""
+        solver, config = self.solver, self.solver.config
+        dt, integrator = self.dt, solver.integrator
+        inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
+        alpha, beta = config.rayleigh_alpha, config.rayleigh_beta
+        q_n = self.q_n
+        q_hat = q_n + dt * self.v_n
+        f_ext = solver.gravity_force.clone()
+        for handle, force in zip(self.force_handles, self.forces, strict=True):
+            solver._point_gradient(f_ext, handle.index, handle.value, force)
+        spring_H = None
+        for k, jtj in enumerate(self.spring_jtj):
+            part = self.stiffness[k] * jtj
+            spring_H = part if spring_H is None else spring_H.add_(part)
+
+        zero = q_n.new_zeros(())
+        done, redo = torch.zeros((), dtype=torch.bool, device=q_n.device), torch.zeros_like(zero, dtype=torch.bool)
+        iterations, halvings, energy_out, last_update, min_det = (zero.clone() for _ in range(5))
+        min_det += 1.0
+        lengths = self.step_lengths
+        q, damping_K, factor = q_n.clone(), None, None
+        for iteration in range(config.newton_iterations):
+            fresh = config.hessian_updates is None or iteration < config.hessian_updates
+            elastic = integrator.evaluate(q, hessian=fresh, project=config.project_hessian)
+            if beta and damping_K is None:
+                damping_K = elastic.hessian.clone()
+            contact_E, contact_g, contact_H = self._contacts(q, True, fresh)
+            spring_E, spring_g = self._springs(q, True)
+            dx_hat, dx = q - q_hat, q - q_n
+            grad = inv_h2 * (solver.mass @ dx_hat) + elastic.gradient - f_ext + contact_g + spring_g
+            if alpha:
+                grad = grad + alpha * inv_h * (solver.mass @ dx)
+            if damping_K is not None:
+                grad = grad + beta * inv_h * (damping_K @ dx.reshape(-1)).view_as(q)
+            if fresh:
+                H = elastic.hessian
+                H.add_(solver.mass_flat, alpha=inv_h2 + alpha * inv_h)
+                if damping_K is not None:
+                    H.add_(damping_K, alpha=beta * inv_h)
+                for part in (spring_H, contact_H):
+                    if part is not None:
+                        H += part
+                factor, info = torch.linalg.cholesky_ex(H)
+                redo = redo | (info != 0)  # the host loop shifts a singular matrix
+            step = torch.cholesky_solve(-grad.reshape(-1, 1), factor).view_as(q)
+
+            energy = solver._incremental_energy(q, q_hat, q_n, inv_h, f_ext, damping_K, elastic.energy)
+            energy = energy + spring_E + contact_E
+            slope = (grad * step).sum()
+            trial_energy, trial_det = [], []
+            for t in self.trial_lengths:
+                trial = q + t * step
+                trial_elastic = integrator.evaluate(trial, gradient=False, hessian=False, project=False)
+                value = solver._incremental_energy(trial, q_hat, q_n, inv_h, f_ext, damping_K, trial_elastic.energy)
+                trial_energy.append(value + self._springs(trial, False)[0] + self._contacts(trial, False, False)[0])
+                trial_det.append(trial_elastic.min_det)
+            trial_energy, trial_det = torch.stack(trial_energy), torch.stack(trial_det)
+            accepted = torch.isfinite(trial_energy) & (trial_energy <= energy + 1e-4 * lengths * slope)
+            found = accepted.any()
+            first = accepted.to(zero.dtype).argmax()  # the longest acceptable step (the first maximum)
+            t = torch.where(found, _pick(lengths, first), zero)
+            # A line search that finds nothing at a stationary iterate ends the host loop as converged; anywhere
+            # else the host loop would halve further or report a failure: it redoes the step.
+            stationary = (solver._displacement_tensor(step) < config.newton_tolerance) | (
+                -slope <= 64.0 * torch.finfo(torch.float64).eps * energy.abs())
+            active = ~done
+            redo = redo | (active & ~found & ~stationary)
+            q = torch.where(active, q + t * step, q)
+            update = solver._displacement_tensor(t * step)
+            iterations = iterations + active
+            halvings = halvings + torch.where(active, torch.where(found, first, config.line_search_steps), 0)
+            energy_out = torch.where(active, torch.where(found, _pick(trial_energy, first), energy), energy_out)
+            min_det = torch.where(active, torch.where(found, _pick(trial_det, first), elastic.min_det), min_det)
+            last_update = torch.where(active, update, last_update)
+            done = done | (active & (~found | (update < config.newton_tolerance)))
+        qd = (q - q_n) * inv_h
+        stats = torch.stack([iterations, energy_out, last_update, min_det, halvings.to(zero.dtype),
+                             (done & ~redo).to(zero.dtype), redo.to(zero.dtype)])
+        return q, qd, stats
+
+
+def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    """``values[index]`` for a 0-d index tensor, with no read of the index on the host (``values[index]`` reads it)."""
+    return values.gather(0, index.view(1)).squeeze(0)
 
 
 def _finite_number(value) -> bool:

@@ -78,3 +78,18 @@ def test_unknown_assembly_is_refused(device):
     index, shape_grad, weight, _, n = _problem()
     with pytest.raises(ValueError, match="unknown assembly"):
         IPIntegrator(index, shape_grad, weight, n, 1.0, 1.0, MaterialModel.ARAP, assembly="sparse")
+
+
+def test_block_sums_by_the_warp_kernel_match_torch(device):
+    """The per-IP blocks summed into the dense Hessian by the Warp kernel (CUDA's path) and by torch's segmented sum
+    (the CPU's path) agree, whatever the device runs them."""
+    index, shape_grad, weight, q, n = _problem(seed=7, K=9, S=6, n=11)
+    dev = backend.torch_device()
+    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, 2.0, 5.0,
+                              MaterialModel.NEO_HOOKEAN, assembly="per_ip")
+    K, S = index.shape
+    blocks = torch.randn(K * S * S, 9, generator=torch.Generator().manual_seed(2), dtype=torch.float64).to(dev)
+    by_warp = integrator._sum_blocks(blocks, warp_kernel=True)
+    by_torch = integrator._sum_blocks(blocks, warp_kernel=False)
+    torch.testing.assert_close(by_warp, by_torch, rtol=1e-13, atol=1e-13)
+    assert by_warp.abs().sum() > 0

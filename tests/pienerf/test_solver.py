@@ -10,9 +10,11 @@ from pienerf.model import DiscretizationConfig, QGMLSModel
 from pienerf.solver import (
     ControlQGMLS,
     PlaneCollider,
+    PointForces,
     PointTargets,
     SolverConfig,
     SolverQGMLS,
+    SphereCollider,
 )
 
 
@@ -189,3 +191,89 @@ def test_contact_hessian_is_the_same_by_product_and_by_blocks(device, monkeypatc
     monkeypatch.setattr(solver_module, "DENSE_ASSEMBLY_RATIO", 0.0)
     by_blocks = solver._normal_point_hessian(particles.index, particles.value, stiffness, normal)
     torch.testing.assert_close(by_product, by_blocks, rtol=1e-12, atol=1e-12 * float(by_blocks.abs().max()))
+
+
+def _device_loop_pair(config, model):
+    """The same solver twice, one on the host loop and one on the device loop (uncaptured on the CPU)."""
+    host = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(**config, device_loop=False))
+    device = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(**config, device_loop=True))
+    return host, device
+
+
+def _assert_same_step(host_report, device_report, host_state, device_state):
+    torch.testing.assert_close(device_state.q, host_state.q, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(device_state.qd, host_state.qd, rtol=1e-10, atol=1e-10)
+    assert device_report.iterations == host_report.iterations
+    assert device_report.line_search_halvings == host_report.line_search_halvings
+    assert device_report.converged == host_report.converged
+    assert device_report.line_search_failure == host_report.line_search_failure
+    assert device_report.energy == pytest.approx(host_report.energy, rel=1e-10)
+    assert device_report.min_det == pytest.approx(host_report.min_det, rel=1e-10)
+
+
+@pytest.mark.parametrize("config", [
+    {"newton_iterations": 3, "newton_tolerance": 0.0, "rayleigh_alpha": 1.0},
+    {"newton_iterations": 5, "newton_tolerance": 1e-7, "rayleigh_beta": 0.01},  # converges early: masked iterations
+    {"newton_iterations": 4, "newton_tolerance": 1e-9, "hessian_updates": 1},
+])
+def test_device_loop_takes_the_host_loops_step(device, config):
+    """Springs that move, a point force, a floor the body is pressed into and a sphere it falls on: the loop with no
+    host read gives the host loop's state and report, step after step, and re-uses one graph for them all."""
+    model = box_model(backend.torch_device())
+    host, device_solver = _device_loop_pair(config, model)
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    tip = model.handle(model.position[model.position[:, 0].argmax()][None])
+    states, redone = [host.rest_state(), device_solver.rest_state()], 0
+    for i in range(4):
+        lift = torch.tensor([[0.0, 0.02 * (i + 1), 0.0]], dtype=torch.float64, device=model.device)
+        control = ControlQGMLS(
+            springs=[PointTargets(pin, pin.rest.clone(), 1e5), PointTargets(tip, tip.rest + lift, 2e3 * (i + 1))],
+            forces=[PointForces(tip, torch.tensor([[0.0, 0.0, 3.0 * i]], dtype=torch.float64, device=model.device))],
+            colliders=[PlaneCollider(point=(0.0, 0.01 * i, 0.0)), SphereCollider((0.35, -0.05, 0.1), 0.07)],
+        )
+        reports = [solver.step(state, state, control, 1e-2) for solver, state in zip((host, device_solver), states,
+                                                                                      strict=True)]
+        assert not reports[0].device_loop
+        if reports[0].line_search_halvings == 0:  # more halvings than the device loop tries go to the host loop
+            assert reports[1].device_loop
+        _assert_same_step(*reports, *states)
+        redone += not reports[1].device_loop
+    assert device_solver.device_loop_redos == redone < 4
+    assert len(device_solver._device_loops) == 1  # new targets, stiffnesses, forces and placements: same graph
+
+
+def test_device_loop_hands_steps_it_cannot_take_to_the_host_loop(device):
+    """A step whose line search needs more halvings than the device loop tries, and one that fails (a force no body
+    can bear inverts every trial), are redone by the host loop: the same state and the same failure report."""
+    model = box_model(backend.torch_device())
+    tip = model.handle(model.position[model.position[:, 0].argmax()][None])
+    config = {"newton_iterations": 2, "line_search_batch": 1}
+    for force in (2e3, 1e20):
+        host, device_solver = _device_loop_pair(config, model)
+        states = [host.rest_state(), device_solver.rest_state()]
+        push = torch.tensor([[0.0, -force, 0.0]], dtype=torch.float64, device=model.device)
+        control = ControlQGMLS(forces=[PointForces(tip, push)])
+        reports = [solver.step(state, state, control, 1e-2) for solver, state in zip((host, device_solver), states,
+                                                                                      strict=True)]
+        assert reports[0].line_search_halvings > 0
+        assert device_solver.device_loop_redos == 1 and not reports[1].device_loop
+        _assert_same_step(*reports, *states)
+    assert reports[1].line_search_failure == "inversion"
+
+
+def test_device_loops_follow_the_controls_and_the_material(device):
+    """A new set of material points (a drag starts) takes a new loop, the old one is kept for when it ends; a new
+    material drops them all (they hold the old one)."""
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(), SolverConfig(device_loop=True))
+    state = solver.rest_state()
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    tip = model.handle(model.position[model.position[:, 0].argmax()][None])
+    pins = PointTargets(pin, pin.rest.clone(), 1e5)
+    for springs in ([pins], [pins, PointTargets(tip, tip.rest.clone(), 1e3)], [pins]):
+        solver.step(state, state, ControlQGMLS(springs=springs), 1e-2)
+    assert len(solver._device_loops) == 2
+    solver.set_material(Material(young_modulus=2e5))
+    assert len(solver._device_loops) == 0
+    report = solver.step(state, state, ControlQGMLS(springs=[pins]), 1e-2)
+    assert report.device_loop and report.iterations >= 1

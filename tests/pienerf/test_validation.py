@@ -167,7 +167,7 @@ def test_random_drags_for_2000_steps_stay_finite_uninverted_and_bounded(device, 
         picks = torch.randperm(position.shape[0], generator=generator)[:3]
         handle = model.handle(position[picks])
         offset = (torch.rand(3, 3, generator=generator, dtype=torch.float64) - 0.5) * torch.tensor([0.6, 0.4, 0.6])
-        target = (handle.positions(state.q) + offset).to(model.device)
+        target = handle.positions(state.q) + offset.to(model.device)
         target[:, 1].clamp_(min=0.02)
         drag = PointTargets(handle, target, stiffness)
         budget += 0.5 * stiffness * float(((handle.positions(state.q) - target) ** 2).sum())
