@@ -20,6 +20,12 @@ an unseen motion and writes the Table-2-style report ``evaluate/report.md`` (+ J
 run one stage each, reading the earlier stages' folders under ``--out``; pass ``--smoke`` to all or to none.
 ``estimate --exact`` fits the true meshes instead of the tracked ones. Bad input prints one line and exits with
 status 2.
+
+``simulate`` checks ``--out`` before simulating and writes each file whole or not at all
+(:func:`pienerf.output_files.atomic_path`): a file from an earlier run is replaced only by a complete one. Ctrl-C
+during the simulation writes the frames finished so far (sequence, statistics and meshes, no video); Ctrl-C while
+writing keeps the files already written. Either way the command says what it kept and exits with status 130; a
+failed write (a full disk) exits with status 1.
 """
 
 from __future__ import annotations
@@ -27,7 +33,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-import os
 import sys
 from pathlib import Path
 
@@ -37,6 +42,7 @@ from physavatar import simulate as sim
 from physavatar.body import Body
 from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
 from physavatar.motion import MOTIONS, load_bvh, named_motion
+from pienerf.output_files import atomic_path, check_output_folder
 
 SMOKE_FRAMES = 3
 MAX_FRAMES = 10_000
@@ -138,19 +144,37 @@ def _garment_scale(text: str) -> float | str:
     return value
 
 
-def _check_out(out: Path) -> None:
-    """Refuse, before any work, an output folder that cannot be created or written."""
-    existing = out
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        what = "--out" if existing == out else f"--out's parent {existing}"
-        raise ValueError(f"{what} is a file, not a folder; pass a folder path for the results (it is created)")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(f"cannot write into {existing}; pass an --out folder you may write to")
+RESULT_FILES = ("sequence.npz", "stats.json", "video.mp4")
+"""What ``simulate`` writes into ``--out`` (and ``meshes/`` with ``--meshes``)."""
 
 
-def simulate_command(args: argparse.Namespace) -> None:
+def _check_results_in_the_way(out: Path, meshes: bool) -> None:
+    """Refuse, before any work, a result path under ``out`` taken by something it cannot replace."""
+    for name in RESULT_FILES:
+        if (out / name).is_dir():
+            raise ValueError(f"{out / name} is a folder where a result file goes; remove it or pass another --out")
+    if meshes and (out / "meshes").exists() and not (out / "meshes").is_dir():
+        raise ValueError(f"{out / 'meshes'} is a file where the meshes folder goes; remove it or pass another --out")
+
+
+def _write_results(result: sim.SimulationResult, args: argparse.Namespace, video: bool, written: list[str]) -> None:
+    """Write the sequence, statistics, meshes and (with ``video``) the video, each atomically; ``written`` gathers
+    the names finished, for the report of a run stopped part way."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    sim.write_npz(result, args.out / "sequence.npz", staging=atomic_path)
+    written.append("sequence.npz")
+    sim.write_stats_json(result, args.out / "stats.json", staging=atomic_path)
+    written.append("stats.json")
+    if args.meshes:
+        sim.write_meshes(result, args.out / "meshes", args.meshes, staging=atomic_path)
+        written.append(f"meshes/ ({result.garment_frames.shape[0]} {args.meshes} files)")
+    if video:
+        size = (128, 96) if args.smoke else tuple(args.video_size)
+        sim.render_video(result, args.out / "video.mp4", size=size, staging=atomic_path)
+        written.append("video.mp4")
+
+
+def simulate_command(args: argparse.Namespace) -> int:
     frames = SMOKE_FRAMES if args.smoke else args.frames
     if not 1 <= frames <= MAX_FRAMES:
         raise ValueError(f"--frames must be at least 1 and at most {MAX_FRAMES}, got {frames}")
@@ -160,7 +184,8 @@ def simulate_command(args: argparse.Namespace) -> None:
             f"--video-size must be two positive pixel counts W H, got {width} {height}; each at most {MAX_VIDEO_SIZE}"
         )
     _check_motion(args.motion)
-    _check_out(args.out)
+    check_output_folder(args.out)
+    _check_results_in_the_way(args.out, bool(args.meshes))
     sim.require_video_encoder()  # before the simulation, not after it
     if args.garment is not None and not args.garment.is_file():
         raise FileNotFoundError(f"garment file {args.garment} does not exist; pass --garment PATH (OBJ or PLY)")
@@ -181,24 +206,45 @@ def simulate_command(args: argparse.Namespace) -> None:
     else:
         motion = load_bvh(Path(args.motion), body.skeleton)
     boundary = select_boundary(garment, body, mode=args.boundary)
-    result = sim.simulate(garment, body, motion, frames=frames, boundary=boundary)
-    args.out.mkdir(parents=True, exist_ok=True)
-    sim.write_npz(result, args.out / "sequence.npz")
-    sim.write_stats_json(result, args.out / "stats.json")
-    if args.meshes:
-        sim.write_meshes(result, args.out / "meshes", args.meshes)
-    size = (128, 96) if args.smoke else (width, height)
-    sim.render_video(result, args.out / "video.mp4", size=size)
+    try:
+        result = sim.simulate(garment, body, motion, frames=frames, boundary=boundary)
+        interrupted = None
+    except sim.SimulationInterrupted as stop:
+        result, interrupted = stop.result, stop
+        if not result.stats:
+            print(f"interrupted before the first step finished: nothing written to {args.out}", file=sys.stderr)
+            return 130
+        print(f"{stop} (Ctrl-C); writing the frames finished so far", file=sys.stderr)
+    written: list[str] = []
+    try:
+        _write_results(result, args, video=interrupted is None, written=written)
+    except KeyboardInterrupt:
+        print(f"interrupted while writing the results; {_kept(args.out, written)}", file=sys.stderr)
+        return 130
+    except OSError as error:
+        print(f"error: writing the results failed ({error}); {_kept(args.out, written)}", file=sys.stderr)
+        return 1
     stalled = sim.stalled_steps(result)
     print(
-        f"wrote {args.out}/sequence.npz, stats.json, video.mp4 ({result.garment_frames.shape[0]} frames of the "
-        f"garment {garment.name!r}); {stalled} of {len(result.stats)} steps ended with a stalled line search"
+        f"wrote {args.out}/{', '.join(written)} ({result.garment_frames.shape[0]} frames of the garment "
+        f"{garment.name!r}); {stalled} of {len(result.stats)} steps ended with a stalled line search"
         + (" (those frames are not converged solutions)" if stalled else "")
     )
+    if interrupted is not None:
+        print(f"{interrupted} (Ctrl-C): {args.out} holds the frames finished before it, no video", file=sys.stderr)
+        return 130
+    return 0
+
+
+def _kept(out: Path, written: list[str]) -> str:
+    """What a run stopped while writing kept (the file in progress is never left half-written)."""
+    if not written:
+        return f"nothing written to {out}"
+    return f"kept {out}/{', '.join(written)}; the file in progress was not written"
 
 
 def stage_command(args: argparse.Namespace) -> None:
-    _check_out(args.out)
+    check_output_folder(args.out)
     config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
     if args.frames is not None and args.frames > MAX_FRAMES:
         raise ValueError(f"--frames must be at most {MAX_FRAMES}, got {args.frames}")
@@ -236,12 +282,14 @@ def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.command == "simulate":
-            simulate_command(args)
-        else:
-            stage_command(args)
+            return simulate_command(args)
+        stage_command(args)
     except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"interrupted: {args.command} stopped", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -7,11 +7,18 @@ following the LBS of their nearest body points (Appendix A.3.2).
 
 Writers: one NPZ with both sequences and faces, optional per-frame OBJ/PLY meshes, an MP4 of the dressed
 mannequin from an orbiting camera (ray cast by :func:`kernels.raycast.shade`, with the shadow on a ground plane)
-and a JSON of per-step statistics.
+and a JSON of per-step statistics. Each writes every file through a ``staging`` step passed in: ``staging(path)`` is
+a context manager that yields the file to write for ``path`` and puts it at ``path`` once its block ends cleanly.
+The default writes ``path`` itself; a program passes one that writes a temporary file and moves it into place
+(``pienerf.output_files.atomic_path``), so that an interrupted write leaves no half-written file.
+
+Ctrl-C during :func:`simulate` raises :class:`SimulationInterrupted`, a ``KeyboardInterrupt`` that carries the
+frames finished so far.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import importlib.util
 import json
@@ -35,7 +42,9 @@ from physavatar.garment import Garment, select_boundary
 from physavatar.motion import Motion
 
 __all__ = [
+    "SimulationInterrupted",
     "SimulationResult",
+    "Staging",
     "render_video",
     "require_video_encoder",
     "simulate",
@@ -49,6 +58,10 @@ GARMENT_COLOR = (0.80, 0.22, 0.20)
 BODY_COLOR = (0.78, 0.74, 0.68)
 GROUND_COLOR = (0.92, 0.92, 0.90)
 SKY_COLOR = (1.0, 1.0, 1.0)
+
+Staging = Callable[[Path], contextlib.AbstractContextManager[Path]]
+"""``staging(path)``: a context manager yielding the file to write for ``path``, in place at ``path`` after a clean
+exit of its block (see the module docstring)."""
 
 
 @dataclass
@@ -74,6 +87,20 @@ class SimulationResult:
     fps: float
     stats: list[StepStats]
     wall_time: list[float]
+
+
+class SimulationInterrupted(KeyboardInterrupt):
+    """Ctrl-C (``KeyboardInterrupt``) during :func:`simulate`, with the frames finished before it.
+
+    Attributes:
+        result: :class:`SimulationResult` of the start frame and the steps that finished (``len(result.stats)``
+            of them; none if the first step did not finish).
+        frames: steps that were asked for.
+    """
+
+    def __init__(self, result: SimulationResult, frames: int):
+        super().__init__(f"interrupted after {len(result.stats)} of {frames} steps")
+        self.result, self.frames = result, frames
 
 
 def simulate(
@@ -103,6 +130,7 @@ def simulate(
 
     Raises:
         ValueError: too few motion frames, or a step that produced NaN.
+        SimulationInterrupted: on Ctrl-C during the steps, with the frames finished before it.
     """
     device = backend.init(device)
     config = config or ClothConfig()
@@ -117,33 +145,42 @@ def simulate(
     out = [state.x.clone()]
     on_device = driver.to(backend.torch_device())
     stats, wall = [], []
-    for t in range(frames):
-        control = on_device.control(t)
-        start = time.perf_counter()
-        step = solver.step(state, state, control, dt)
-        wall.append(time.perf_counter() - start)
-        if not bool(torch.isfinite(state.x).all()):
-            raise ValueError(f"step {t + 1} produced NaN or inf positions; lower Δt or check the inputs")
-        out.append(state.x.clone())
-        stats.append(step)
-        if callable(progress):
-            progress(t + 1, step)
-        elif progress:
-            print(
-                f"step {t + 1}/{frames}: {step.newton_iterations} Newton iterations, "
-                f"min distance to body {step.min_distance_body * 1e3:.3f} mm, {wall[-1]:.2f} s",
-                file=sys.stderr,
-            )
-    return SimulationResult(
-        torch.stack(out).cpu(),
-        driver.body_frames.cpu(),
-        garment.faces.long().cpu(),
-        body.faces.long().cpu(),
-        boundary.cpu(),
-        float(motion.fps),
-        stats,
-        wall,
-    )
+
+    def finished() -> SimulationResult:
+        """The frames of the steps that finished (a step counts once its positions are kept)."""
+        done = len(out) - 1
+        return SimulationResult(
+            torch.stack(out).cpu(),
+            driver.body_frames[: done + 1].cpu(),
+            garment.faces.long().cpu(),
+            body.faces.long().cpu(),
+            boundary.cpu(),
+            float(motion.fps),
+            stats[:done],
+            wall[:done],
+        )
+
+    try:
+        for t in range(frames):
+            control = on_device.control(t)
+            start = time.perf_counter()
+            step = solver.step(state, state, control, dt)
+            wall.append(time.perf_counter() - start)
+            if not bool(torch.isfinite(state.x).all()):
+                raise ValueError(f"step {t + 1} produced NaN or inf positions; lower Δt or check the inputs")
+            stats.append(step)
+            out.append(state.x.clone())
+            if callable(progress):
+                progress(t + 1, step)
+            elif progress:
+                print(
+                    f"step {t + 1}/{frames}: {step.newton_iterations} Newton iterations, "
+                    f"min distance to body {step.min_distance_body * 1e3:.3f} mm, {wall[-1]:.2f} s",
+                    file=sys.stderr,
+                )
+    except KeyboardInterrupt as stop:
+        raise SimulationInterrupted(finished(), frames) from stop
+    return finished()
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -151,24 +188,28 @@ def simulate(
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def write_npz(result: SimulationResult, path: str | Path) -> Path:
+def write_npz(result: SimulationResult, path: str | Path, staging: Staging = contextlib.nullcontext) -> Path:
     """One NPZ with ``garment_frames [T, V, 3]``, ``body_frames [T, B, 3]`` (m), both face arrays,
-    ``boundary_index`` and ``fps``."""
+    ``boundary_index`` and ``fps``, at ``path`` exactly (no suffix added), written through ``staging``."""
     path = Path(path)
-    np.savez_compressed(
-        path,
-        garment_frames=result.garment_frames.numpy(),
-        body_frames=result.body_frames.numpy(),
-        garment_faces=result.garment_faces.numpy(),
-        body_faces=result.body_faces.numpy(),
-        boundary_index=result.boundary_index.numpy(),
-        fps=np.float64(result.fps),
-    )
+    with staging(path) as target, open(target, "wb") as file:
+        np.savez_compressed(
+            file,
+            garment_frames=result.garment_frames.numpy(),
+            body_frames=result.body_frames.numpy(),
+            garment_faces=result.garment_faces.numpy(),
+            body_faces=result.body_faces.numpy(),
+            boundary_index=result.boundary_index.numpy(),
+            fps=np.float64(result.fps),
+        )
     return path
 
 
-def write_meshes(result: SimulationResult, folder: str | Path, fmt: str = "obj") -> list[Path]:
-    """Per-frame garment meshes ``garment_0000.<fmt>`` (``fmt``: ``"obj"`` or ``"ply"``) in ``folder``."""
+def write_meshes(
+    result: SimulationResult, folder: str | Path, fmt: str = "obj", staging: Staging = contextlib.nullcontext
+) -> list[Path]:
+    """Per-frame garment meshes ``garment_0000.<fmt>`` (``fmt``: ``"obj"`` or ``"ply"``) in ``folder``, each
+    written through ``staging``: an interrupted run keeps the frames written before it."""
     if fmt not in ("obj", "ply"):
         raise ValueError(f"mesh format must be 'obj' or 'ply', got {fmt!r}")
     folder = Path(folder)
@@ -177,7 +218,8 @@ def write_meshes(result: SimulationResult, folder: str | Path, fmt: str = "obj")
     paths = []
     for t, x in enumerate(result.garment_frames.numpy()):
         path = folder / f"garment_{t:04d}.{fmt}"
-        trimesh.Trimesh(x, faces, process=False).export(path)
+        with staging(path) as target:
+            trimesh.Trimesh(x, faces, process=False).export(target, file_type=fmt)
         paths.append(path)
     return paths
 
@@ -188,9 +230,9 @@ def stalled_steps(result: SimulationResult) -> int:
     return sum(s.line_search_stalled for s in result.stats)
 
 
-def write_stats_json(result: SimulationResult, path: str | Path) -> Path:
+def write_stats_json(result: SimulationResult, path: str | Path, staging: Staging = contextlib.nullcontext) -> Path:
     """Per-step statistics as JSON: Newton iterations, convergence, min distances (m), contacts, phase times (s);
-    the summary counts the unconverged steps and those whose line search stalled."""
+    the summary counts the unconverged steps and those whose line search stalled. Written through ``staging``."""
     steps = []
     for t, (s, wall) in enumerate(zip(result.stats, result.wall_time, strict=True)):
         record = dataclasses.asdict(s)
@@ -211,7 +253,8 @@ def write_stats_json(result: SimulationResult, path: str | Path) -> Path:
     if math.isinf(summary["min_distance_body_m"]):
         summary["min_distance_body_m"] = None
     path = Path(path)
-    path.write_text(json.dumps({"summary": summary, "steps": steps}, indent=1))
+    with staging(path) as target, open(target, "w") as file:
+        json.dump({"summary": summary, "steps": steps}, file, indent=1)
     return path
 
 
@@ -231,6 +274,7 @@ def render_video(
     size: tuple[int, int] = (480, 360),
     turns: float = 1.0,
     field_of_view: float = 40.0,
+    staging: Staging = contextlib.nullcontext,
 ) -> Path:
     """An MP4 of the dressed body from a camera orbiting it ``turns`` times, one video frame per simulated frame.
 
@@ -243,6 +287,7 @@ def render_video(
         size: ``(width, height)`` in pixels; multiples of 16 avoid resizing.
         turns: camera revolutions over the sequence.
         field_of_view: vertical field of view, degrees.
+        staging: the staging step the file is written through (see the module docstring); keep the ``.mp4`` suffix.
     """
     import imageio.v2 as imageio
 
@@ -284,25 +329,26 @@ def render_video(
     px = ((i + 0.5) / width * 2.0 - 1.0) * tan * width / height
     py = (1.0 - (j + 0.5) / height * 2.0) * tan
     sky = torch.tensor(SKY_COLOR, device=device)
-    writer = imageio.get_writer(Path(path), fps=result.fps, codec="libx264", quality=7, macro_block_size=16)
-    try:
-        for t in range(frames):
-            if t:
-                bvh.refit(scene(t))
-            target = body[t].mean(0).to(device, torch.float32)
-            angle = 2.0 * math.pi * turns * t / max(frames, 1)
-            eye = target + torch.tensor([3.2 * math.sin(angle), 0.5, 3.2 * math.cos(angle)], device=device)
-            forward = torch.nn.functional.normalize(target - eye, dim=0)
-            right = torch.nn.functional.normalize(
-                torch.linalg.cross(forward, torch.tensor([0.0, 1.0, 0.0], device=device)), dim=0
-            )
-            up = torch.linalg.cross(right, forward)
-            directions = forward + px[..., None] * right + py[..., None] * up
-            origins = eye.expand(height * width, 3)
-            shaded = shade(bvh, origins, directions.reshape(-1, 3), colors, face_colors=True)
-            rgba = shaded.rgba.view(height, width, 4)
-            image = rgba[..., :3] * rgba[..., 3:] + sky * (1.0 - rgba[..., 3:])
-            writer.append_data((image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy())
-    finally:
-        writer.close()
+    with staging(Path(path)) as staged:
+        writer = imageio.get_writer(staged, fps=result.fps, codec="libx264", quality=7, macro_block_size=16)
+        try:
+            for t in range(frames):
+                if t:
+                    bvh.refit(scene(t))
+                target = body[t].mean(0).to(device, torch.float32)
+                angle = 2.0 * math.pi * turns * t / max(frames, 1)
+                eye = target + torch.tensor([3.2 * math.sin(angle), 0.5, 3.2 * math.cos(angle)], device=device)
+                forward = torch.nn.functional.normalize(target - eye, dim=0)
+                right = torch.nn.functional.normalize(
+                    torch.linalg.cross(forward, torch.tensor([0.0, 1.0, 0.0], device=device)), dim=0
+                )
+                up = torch.linalg.cross(right, forward)
+                directions = forward + px[..., None] * right + py[..., None] * up
+                origins = eye.expand(height * width, 3)
+                shaded = shade(bvh, origins, directions.reshape(-1, 3), colors, face_colors=True)
+                rgba = shaded.rgba.view(height, width, 4)
+                image = rgba[..., :3] * rgba[..., 3:] + sky * (1.0 - rgba[..., 3:])
+                writer.append_data((image.clamp(0, 1) * 255).to(torch.uint8).cpu().numpy())
+        finally:
+            writer.close()
     return Path(path)

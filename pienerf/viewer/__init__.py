@@ -5,7 +5,8 @@
 * :mod:`pienerf.viewer.viser_viewer`: the viser front end;
 * :mod:`pienerf.viewer.meshcat_viewer` (with :mod:`pienerf.viewer.meshcat_server` and the page in ``web/``): the
   meshcat front end, the default;
-* :mod:`pienerf.viewer.origin`: address checks, and the guard that refuses foreign ``Host`` and ``Origin`` headers.
+* :mod:`pienerf.viewer.origin`: address checks, and the request check that refuses foreign ``Host`` and ``Origin``
+  headers (inside viser's server too).
 
 :func:`build_app` puts a scene's simulation behind the chosen front end.
 """

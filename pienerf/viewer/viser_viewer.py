@@ -14,12 +14,11 @@ Every value from the page is range-checked as it arrives (:func:`pienerf.viewer.
 refused with a message at the top of the panel and the control goes back to the value in use. Switching to the NeRF
 the first time fits it in a separate process while the simulation goes on (:class:`pienerf.viewer.loop.NerfJob`).
 
-Security: viser (1.1.1) offers no hook to check a request's ``Host`` or ``Origin``, so the viser server binds an
-ephemeral loopback port and the viewer's own address is served by a :class:`pienerf.viewer.origin.OriginGuard`,
-which refuses foreign ``Host`` headers (DNS rebinding) and cross-origin websocket upgrades before relaying a
-connection. viser's ephemeral port behind the guard stays open to a page that scans the loopback ports for it (the
-limitation is described in :mod:`pienerf.viewer.origin`). A malformed message closes that client's connection
-(viser's behaviour) and is logged as one line, at most one every few seconds, instead of a traceback.
+Security: the page and its websocket are served on the viewer's address by viser's own server, into which
+:func:`pienerf.viewer.origin.checked_viser_server` puts the viewer's :class:`~pienerf.viewer.origin.RequestCheck`:
+foreign ``Host`` headers (DNS rebinding) and cross-origin requests are refused before viser answers, and the viewer
+listens on that one port only. A malformed message closes that client's connection (viser's behaviour) and is logged
+as one line, at most one every few seconds, instead of a traceback.
 """
 
 from __future__ import annotations
@@ -35,7 +34,7 @@ import torch
 from pienerf.cameras import viser_cameras
 from pienerf.preview import RefinementSchedule
 from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, DemoApp, control_value, si_text, vector3
-from pienerf.viewer.origin import OriginGuard, check_address
+from pienerf.viewer.origin import check_address, checked_viser_server
 
 __all__ = ["ViserViewer"]
 
@@ -95,20 +94,13 @@ class ViserViewer:
     """
 
     def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
-        import viser  # deferred: the optional browser viewer
-
         check_address(host, port)
-        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its own, unguarded, address
-            self.server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
-        try:
-            self.guard = OriginGuard(host, port, self.server.get_port())
-        except Exception:
-            self.server.stop()
-            raise
-        self.port = self.guard.port
+        with contextlib.redirect_stdout(io.StringIO()):  # viser prints its address; the app prints the page's
+            self.server, self.request_check = checked_viser_server(host, port)
+        self.port = self.server.get_port()
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{shown}:{self.port}/"
-        self._malformed = _MalformedMessageLog(self.server.get_port())
+        self._malformed = _MalformedMessageLog(self.port)
         for name in ("websockets.server", "asyncio"):
             logging.getLogger(name).addFilter(self._malformed)
         self.app: DemoApp | None = None
@@ -416,6 +408,5 @@ class ViserViewer:
 
     def close(self) -> None:
         self.server.stop()
-        self.guard.close()
         for name in ("websockets.server", "asyncio"):
             logging.getLogger(name).removeFilter(self._malformed)

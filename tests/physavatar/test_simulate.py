@@ -180,7 +180,7 @@ def test_out_that_is_a_file_is_refused_before_the_work(command, tmp_path):
     taken.write_text("not a folder")
     result = _run(command, "--smoke", "--out", str(taken), "--device", "cpu")
     assert result.returncode == 2
-    assert "--out is a file, not a folder" in result.stderr and "Traceback" not in result.stderr
+    assert f"--out {taken} is a file, not a folder" in result.stderr and "Traceback" not in result.stderr
     assert "step 1/" not in result.stderr and "[capture]" not in result.stderr  # nothing simulated
     assert taken.read_text() == "not a folder"
 

@@ -1,16 +1,19 @@
-"""pienerf.viewer.origin and the viser front end's guard: foreign Host and Origin headers are refused with a real
-handshake, same-origin pages are served, bad addresses and ports in use are refused with the fix, and a malformed
-message logs one line instead of a traceback."""
+"""pienerf.viewer.origin and the viser front end's request check: foreign Host and Origin headers are refused with a
+real handshake, also on viser's own server port, which is the viewer's one listening port; same-origin pages are
+served, bad addresses, ports in use and an untested viser are refused with the fix, and a malformed message logs one
+line instead of a traceback."""
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import socket
+import sys
 
 import pytest
 
-from pienerf.viewer.origin import bind_socket, check_address
+from pienerf.viewer.origin import bind_socket, check_address, checked_viser_server
 from pienerf.viewer.viser_viewer import ViserViewer
 
 
@@ -35,7 +38,7 @@ def _http(port: int, head: str) -> str:
 
 
 def _handshake(port: int, origin: str | None) -> bytes:
-    """Open viser's websocket through the guard with this Origin; the first frame it sends, or the refusal."""
+    """Open viser's websocket on this port with this Origin; the first frame it sends, or the refusal."""
     import viser
     import websockets
 
@@ -54,7 +57,7 @@ def test_cross_origin_websocket_upgrades_are_refused(viewer):
     with pytest.raises(websockets.InvalidStatus) as refused:
         _handshake(viewer.port, "http://evil.example.com")
     assert refused.value.response.status_code == 403
-    assert viewer.guard.refused >= 1
+    assert viewer.request_check.refused >= 1
     assert isinstance(_handshake(viewer.port, f"http://127.0.0.1:{viewer.port}"), bytes), "the page's own origin"
     assert isinstance(_handshake(viewer.port, f"http://localhost:{viewer.port}"), bytes), "loopback by name"
     assert isinstance(_handshake(viewer.port, None), bytes), "a program that is not a browser sends no Origin"
@@ -67,6 +70,70 @@ def test_foreign_host_headers_are_refused(viewer):
     two = f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nHost: evil.example.com\r\n\r\n"
     assert _http(port, two).split()[1] == "403", "a second Host"
     assert _http(port, f"GET / HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\n\r\n").split()[1] == "200"
+
+
+def _listening_ports() -> set[int]:
+    """TCP ports this process listens on (Linux: its socket inodes matched against /proc/net/tcp and tcp6)."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            link = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+    ports = set()
+    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
+        with open(table) as rows:
+            for row in list(rows)[1:]:
+                fields = row.split()
+                if fields[3] == "0A" and fields[9] in inodes:  # LISTEN
+                    ports.add(int(fields[1].rsplit(":", 1)[1], 16))
+    return ports
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads the process's sockets from /proc")
+def test_the_viewer_listens_on_its_own_port_only():
+    before = _listening_ports()
+    viewer = ViserViewer("127.0.0.1", 0)
+    try:
+        assert _listening_ports() - before == {viewer.port}, "no second (unchecked) port for viser"
+        assert viewer.server.get_port() == viewer.port
+    finally:
+        viewer.close()
+
+
+def test_viser_own_server_refuses_foreign_hosts_and_origins(viewer):
+    import websockets
+
+    port = viewer.server.get_port()  # viser's server itself, not a front of it
+    with pytest.raises(websockets.InvalidStatus) as refused:
+        _handshake(port, "http://evil.example.com")
+    assert refused.value.response.status_code == 403
+    assert _http(port, f"GET / HTTP/1.1\r\nHost: evil.example.com:{port}\r\n\r\n").split()[1] == "403"
+    upgrade = (
+        f"GET / HTTP/1.1\r\nHost: rebound.example.com:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        "Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    assert _http(port, upgrade).split()[1] == "403", "a websocket upgrade with a foreign Host"
+    assert isinstance(_handshake(port, f"http://127.0.0.1:{port}"), bytes), "the page's own origin still connects"
+
+
+def test_websockets_serve_is_left_as_it_was():
+    import websockets.asyncio.server
+
+    serve = websockets.asyncio.server.serve
+    viewer = ViserViewer("127.0.0.1", 0)
+    viewer.close()
+    assert websockets.asyncio.server.serve is serve
+
+
+def test_an_untested_viser_is_refused_with_the_fix(monkeypatch):
+    import viser
+
+    monkeypatch.setattr(viser, "__version__", "0.0.1")
+    with pytest.raises(RuntimeError, match=r"viser 0\.0\.1 .*pip install viser==1\.1\.1"):
+        checked_viser_server("127.0.0.1", 0)
 
 
 def test_a_malformed_message_logs_one_line(viewer, caplog):
