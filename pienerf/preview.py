@@ -93,6 +93,7 @@ class MeshRenderBackend:
     ):
         device = backend.torch_device()
         vertices, faces, colors = vertices.float(), faces.long(), colors.float()
+        self.max_edge = max_edge
         if max_edge is not None:
             vertices, faces, colors = split_long_edges(vertices, faces, colors, max_edge)
         self.handle = model.handle(vertices)
