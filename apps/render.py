@@ -148,12 +148,13 @@ MODE_LABELS = {
 """What a tile of each render mode shows, as its label says it."""
 
 
-def _tile_label(run: ScenarioRun, mode: str, labelled: bool, note: str | None = None) -> str | None:
+def _tile_label(run: ScenarioRun, mode: str, labelled: bool, note: str | None = None, modes: int = 1) -> str | None:
     """The label of a tile when the frame holds several variants or modes: the variant's (``label`` or name), then
-    what the mode shows when the variant renders several (:data:`MODE_LABELS`), then ``note`` on a second line."""
+    what the mode shows (:data:`MODE_LABELS`) when the frame holds several ``modes``, then ``note`` on a second
+    line."""
     if not labelled:
         return None
-    text = run.label + (f": {MODE_LABELS.get(mode, mode)}" if len(run.modes) > 1 else "")
+    text = run.label + (f": {MODE_LABELS.get(mode, mode)}" if modes > 1 or len(run.modes) > 1 else "")
     return text + (f"\n{note}" if note else "")
 
 
@@ -174,10 +175,11 @@ def _render_tiles(
     out: Path,
     labelled: bool = False,
     warp_errors: dict | None = None,
+    modes: int = 1,
 ) -> list:
     """Every mode × view of one run at time ``t``, each tile labelled when ``labelled`` (a warped-NeRF tile with its
     error against the mesh when ``warp_errors`` holds it), the scenario's colliders drawn where a mode can draw
-    them; writes the depth and shadow images asked for."""
+    them; ``modes`` is how many render modes the frame holds; writes the depth and shadow images asked for."""
     simulation = run.simulation
     cameras = scenario_cameras(scenario, simulation.centre, t)
     colliders = scenario_colliders(scenario, t, floor=False)  # the floor is the preview's ground already
@@ -190,7 +192,7 @@ def _render_tiles(
             tile = result.rgba.cpu()  # render modes may return different devices
             region = scenario.get("warp_error", {}).get("label", "region")
             note = _warp_error_note((warp_errors or {}).get(mode), region)
-            text = _tile_label(run, mode, labelled, note)
+            text = _tile_label(run, mode, labelled, note, modes)
             tiles.append(label_tile(tile, text) if text else tile)
             stem = f"{run.name}_{mode}_view{view}_{frame:04d}"
             if outputs["depth"]:
@@ -292,6 +294,7 @@ def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBet
     frames, substeps = frame_count(scenario)
     samples, per_frame, step_seconds = written["samples"], written["per_frame"], written["step_seconds"]
     labelled = len(runs) > 1 or any(len(run.modes) > 1 for run in runs)
+    modes = len({mode for run in runs for mode in run.modes})
     dt = runs[0].simulation.config.dt * substeps
     for frame in range(frames + 1):
         t = frame * dt
@@ -306,7 +309,7 @@ def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBet
                 record[f"{run.name}_warp_error"] = errors
             written["warp_error_seconds"] += time.perf_counter() - start
             start = time.perf_counter()
-            tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled, errors)
+            tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled, errors, modes)
             written["render_seconds"] += time.perf_counter() - start
         image = torch.cat(tiles, dim=1)
         rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
