@@ -86,8 +86,8 @@ def region_mask(
     )
     centres = torch.stack([cols.reshape(-1), rows.reshape(-1)], dim=1)
     discs = torch.stack([u, v], dim=1)
-    for start in range(0, len(discs), 256):
-        chunk = slice(start, start + 256)
+    for start in range(0, len(discs), 64):  # [H·W, 64] distances at a time
+        chunk = slice(start, start + 64)
         mask |= (torch.cdist(centres, discs[chunk]) <= reach[chunk]).any(dim=1)
     return mask.reshape(cameras.height, cameras.width)
 
