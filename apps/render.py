@@ -13,7 +13,9 @@ The run writes, under ``--out``:
 
 * ``frames/frame_NNNN.png`` (RGBA tiles of every camera × variant), ``video.mp4``;
 * ``depth/…_NNNN.npy`` (float32 metres) and ``depth/…_NNNN.png`` previews; ``shadow/…_NNNN.png`` when asked;
-* ``metrics.json``: timings, per-step report, volumes, the time breakdown and what is pending;
+* ``metrics.json``: timings, per-step report, volumes, the time breakdown, what is pending and, under
+  ``[warp_error]``, each warped-NeRF mode's error against the mesh (``variants.NAME.warp_error``, per frame and
+  mean; each frame's record under ``per_frame``);
 * ``volume_bars.png`` (Fig. 6) when ``[[volume_samples]]`` are given, ``time_breakdown.png`` (Fig. 10) always.
 
 A ``[nerf]`` table renders the scene's NeRF warped by the simulated deformation (PIE-NeRF §4.6, Eq. 19–21):
@@ -31,6 +33,17 @@ A ``[nerf]`` table renders the scene's NeRF warped by the simulated deformation 
 
 The fitted NeRF is cached as a checkpoint under ``--cache-dir`` (default ``$PIE_CACHE_DIR``, else
 ``~/.cache/pie-physavatar``), so a second run loads it.
+
+``outputs.mesh_edge_fraction`` splits the mesh tiles' edges until each is shorter than that fraction of the smallest
+kernel support radius, so that a bent thin part (Fig. 8's rod) shows its bend instead of a straight chord between
+far-apart vertices (:func:`pienerf.mesh_refine.split_long_edges`; the rest state renders as before).
+
+A ``[warp_error]`` table (Fig. 8) measures, every frame, each warped-NeRF mode of a variant against the variant's own
+mesh render of the same state, both rendered again without the ground (:mod:`pienerf.warp_error`): ``region`` is a
+rest-space box ``[[x0, y0, z0], [x1, y1, z1]]`` (m) of the material to look at (the rod), ``dilation`` the pixels
+added around its projected particles (default 2), ``label`` its name on the tiles. On the pixels near that
+material which either render covers (alpha > ½) it reports the PSNR of the colours over white and the silhouettes'
+intersection over union; each warped-NeRF tile's label carries the frame's figures.
 
 ``--smoke`` applies the scenario's ``[smoke]`` table (few frames, tiny images, few kernels). A bad scenario (an
 unknown key, a wrong type, a number outside its range, a missing required key) or an ``--out`` that cannot be
@@ -80,6 +93,7 @@ from pienerf.scenario import (
     build_runs,
     frame_count,
     load_scenario,
+    measure_warp_error,
     merged_breakdown,
     prepare_nerf,
     run_metrics,
@@ -108,10 +122,15 @@ def _depth_preview(depth: torch.Tensor) -> np.ndarray:
 def label_tile(tile: torch.Tensor, text: str) -> torch.Tensor:
     """``tile [H, W, 4]`` (straight-alpha RGBA in [0, 1]) with ``text`` in black on an opaque white box at its
     bottom-left corner (over the ground, clear of what hangs above the body), drawn in PIL's default font and
-    clipped to the tile when it is narrower than the text."""
+    clipped to the tile when it is narrower than the text. Lines after the first are left out where the box would
+    cover more than a third of the tile's height."""
     image = Image.fromarray(_to_uint8(tile), mode="RGBA")
     draw = ImageDraw.Draw(image)
     font = ImageFont.load_default()
+    lines = text.split("\n")
+    while len(lines) > 1 and draw.textbbox((0, 0), "\n".join(lines), font=font)[3] + 6 > image.height / 3:
+        lines.pop()
+    text = "\n".join(lines)
     left, top, right, bottom = draw.textbbox((0, 0), text, font=font)
     origin = (3 - left, image.height - 3 - bottom)
     draw.rectangle((0, image.height - (bottom - top) - 6, right - left + 6, image.height), fill=(255, 255, 255, 255))
@@ -119,19 +138,48 @@ def label_tile(tile: torch.Tensor, text: str) -> torch.Tensor:
     return torch.from_numpy(np.asarray(image).astype(np.float32) / 255.0)
 
 
-def _tile_label(run: ScenarioRun, mode: str, labelled: bool) -> str | None:
+MODE_LABELS = {
+    "mesh": "mesh",
+    "particles": "particles",
+    "nerf": "NeRF, quadratic warp",
+    "nerf_linear": "NeRF, linear warp",
+    "nerf_rest": "NeRF, unwarped",
+}
+"""What a tile of each render mode shows, as its label says it."""
+
+
+def _tile_label(run: ScenarioRun, mode: str, labelled: bool, note: str | None = None, modes: int = 1) -> str | None:
     """The label of a tile when the frame holds several variants or modes: the variant's (``label`` or name), then
-    the mode when the variant renders several."""
+    what the mode shows (:data:`MODE_LABELS`) when the frame holds several ``modes``, then ``note`` on a second
+    line."""
     if not labelled:
         return None
-    return run.label + (f" ({mode})" if len(run.modes) > 1 else "")
+    text = run.label + (f": {MODE_LABELS.get(mode, mode)}" if modes > 1 or len(run.modes) > 1 else "")
+    return text + (f"\n{note}" if note else "")
+
+
+def _warp_error_note(error: dict | None, region: str) -> str | None:
+    """A tile's second label line for a warped-NeRF mode measured against the mesh on ``region``, e.g.
+    ``vs mesh on rod: 24.1 dB, IoU 0.83``."""
+    if error is None or error["pixels"] == 0:
+        return None
+    return f"vs mesh on {region}: {error['psnr_db']:.1f} dB, IoU {error['silhouette_iou']:.2f}"
 
 
 def _render_tiles(
-    run: ScenarioRun, scenario: dict, t: float, frame: int, outputs: dict, out: Path, labelled: bool = False
+    run: ScenarioRun,
+    scenario: dict,
+    t: float,
+    frame: int,
+    outputs: dict,
+    out: Path,
+    labelled: bool = False,
+    warp_errors: dict | None = None,
+    modes: int = 1,
 ) -> list:
-    """Every mode × view of one run at time ``t``, each tile labelled when ``labelled``, the scenario's colliders
-    drawn where a mode can draw them; writes the depth and shadow images asked for."""
+    """Every mode × view of one run at time ``t``, each tile labelled when ``labelled`` (a warped-NeRF tile with its
+    error against the mesh when ``warp_errors`` holds it), the scenario's colliders drawn where a mode can draw
+    them; ``modes`` is how many render modes the frame holds; writes the depth and shadow images asked for."""
     simulation = run.simulation
     cameras = scenario_cameras(scenario, simulation.centre, t)
     colliders = scenario_colliders(scenario, t, floor=False)  # the floor is the preview's ground already
@@ -142,7 +190,9 @@ def _render_tiles(
         for view in range(len(cameras)):
             result = simulation.render(cameras, view, mode, shadow=outputs["shadow"])
             tile = result.rgba.cpu()  # render modes may return different devices
-            text = _tile_label(run, mode, labelled)
+            region = scenario.get("warp_error", {}).get("label", "region")
+            note = _warp_error_note((warp_errors or {}).get(mode), region)
+            text = _tile_label(run, mode, labelled, note, modes)
             tiles.append(label_tile(tile, text) if text else tile)
             stem = f"{run.name}_{mode}_view{view}_{frame:04d}"
             if outputs["depth"]:
@@ -206,7 +256,12 @@ def _write_frames(scenario: dict, runs: list[ScenarioRun], out: Path, outputs: d
     step_seconds = {run.name: [] for run in runs}
     per_frame = []
     written.update(
-        substeps=substeps, samples=samples, step_seconds=step_seconds, render_seconds=0.0, per_frame=per_frame
+        substeps=substeps,
+        samples=samples,
+        step_seconds=step_seconds,
+        render_seconds=0.0,
+        warp_error_seconds=0.0,
+        per_frame=per_frame,
     )
     writer, video = None, None
     if outputs["mp4"]:
@@ -239,6 +294,7 @@ def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBet
     frames, substeps = frame_count(scenario)
     samples, per_frame, step_seconds = written["samples"], written["per_frame"], written["step_seconds"]
     labelled = len(runs) > 1 or any(len(run.modes) > 1 for run in runs)
+    modes = len({mode for run in runs for mode in run.modes})
     dt = runs[0].simulation.config.dt * substeps
     for frame in range(frames + 1):
         t = frame * dt
@@ -248,7 +304,12 @@ def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBet
                 step_seconds[run.name] += advance(run, scenario, t, substeps)
             record[f"{run.name}_relative_volume"] = sample_volumes(run, samples, frame)
             start = time.perf_counter()
-            tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled)
+            errors = measure_warp_error(run, scenario, t)
+            if errors is not None:
+                record[f"{run.name}_warp_error"] = errors
+            written["warp_error_seconds"] += time.perf_counter() - start
+            start = time.perf_counter()
+            tiles += _render_tiles(run, scenario, t, frame, outputs, out, labelled, errors, modes)
             written["render_seconds"] += time.perf_counter() - start
         image = torch.cat(tiles, dim=1)
         rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
@@ -268,6 +329,7 @@ def _finished_metrics(runs: list[ScenarioRun], written: dict) -> dict:
         "steps_per_frame": written["substeps"],
         "dt_s": runs[0].simulation.config.dt,
         "render_seconds": written["render_seconds"],
+        "warp_error_seconds": written["warp_error_seconds"],
         "time_breakdown": breakdown.to_dict(),
         "variants": {run.name: run_metrics(run, written["step_seconds"][run.name]) for run in runs},
         "per_frame": written["per_frame"],

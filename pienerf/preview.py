@@ -7,6 +7,8 @@ A :class:`RenderBackend` renders the body at generalized coordinates ``q`` seen 
   (Eq. 9), whose shape functions at the rest vertices are precomputed once; each frame moves the vertices, refits
   the BVH and shades RGBA + depth with a shadow ray onto a ground plane (:func:`kernels.raycast.shade`); the
   colliders it is given (spheres as balls, planes as square plates) are drawn beside the body and cast shadows.
+  Given ``max_edge``, it first splits the mesh's longer edges (:func:`pienerf.mesh_refine.split_long_edges`), so
+  that a bend of the field shows as a bend and not as a straight chord between distant vertices (Fig. 8's rod).
 * :class:`ParticleRenderBackend`: the deformed particles splatted as discs with the colour of the nearest mesh
   vertex.
 * :class:`NerfRenderBackend`: a trained NeRF rendered by quadratic (or linear) ray warping, Eq. 19–21
@@ -26,6 +28,7 @@ import torch
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
 from pienerf.data import Cameras
+from pienerf.mesh_refine import split_long_edges
 from pienerf.model import QGMLSModel
 from pienerf.nerf import OccupancyGrid
 from pienerf.picking import PickSurface
@@ -73,6 +76,9 @@ class MeshRenderBackend:
         colors: ``[V, 3]`` albedo in [0, 1].
         ground_height: y of the ground plane (m), or ``None`` for none.
         ground_color: albedo of the ground.
+        max_edge: split the body's edges until none is longer than this (m); ``None`` renders the mesh as given.
+            The rest surface and its colours stay exactly as they were; the original vertices come first, so
+            :meth:`deform`'s first ``V`` rows are the given vertices.
     """
 
     def __init__(
@@ -83,11 +89,16 @@ class MeshRenderBackend:
         colors: torch.Tensor,
         ground_height: float | None = 0.0,
         ground_color=(0.82, 0.82, 0.8),
+        max_edge: float | None = None,
     ):
         device = backend.torch_device()
+        vertices, faces, colors = vertices.float(), faces.long(), colors.float()
+        self.max_edge = max_edge
+        if max_edge is not None:
+            vertices, faces, colors = split_long_edges(vertices, faces, colors, max_edge)
         self.handle = model.handle(vertices)
         self.body_vertices = vertices.shape[0]
-        vertices, faces, colors = vertices.float(), faces.long(), colors.float()
+        self._body_faces = faces.shape[0]
         if ground_height is not None:
             lo, hi = vertices.amin(0), vertices.amax(0)
             centre, half = 0.5 * (lo + hi), 4.0 * float((hi - lo).max())
@@ -143,6 +154,15 @@ class MeshRenderBackend:
         self._vertices[: self.body_vertices] = self.handle.positions(q).to(self._vertices)
         self.bvh.refit(self._vertices)
         return self._vertices[: self.body_vertices]
+
+    def body_mesh(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The body's rest mesh as this backend renders it (refined when ``max_edge`` was given), on the CPU:
+        ``(vertices [V, 3] float32 m, faces [F, 3] int64, colors [V, 3] albedo)``."""
+        return (
+            self.rest_vertices[: self.body_vertices].cpu(),
+            self._scene_faces[: self._body_faces].cpu(),
+            self._scene_colors[: self.body_vertices].cpu(),
+        )
 
     def surface(self) -> PickSurface:
         """The deformed mesh to pick on (kept current by :meth:`deform`)."""

@@ -9,7 +9,9 @@ format is described in :mod:`apps.render`, which writes the images and metrics.
 :func:`unmet_requirement` says why it cannot run here; :func:`prepare_nerf` fits or loads its NeRF;
 :func:`build_runs` makes one :class:`ScenarioRun` (a :class:`pienerf.session.Simulation`) per variant;
 :func:`advance` steps a run through one frame under the scenario's controls and colliders;
-:func:`scenario_cameras` gives the frame's cameras; :func:`merged_breakdown` and :func:`run_metrics` summarise.
+:func:`scenario_cameras` gives the frame's cameras; :func:`measure_warp_error` compares a run's warped-NeRF renders
+with its mesh (``[warp_error]``); :func:`merged_breakdown`, :func:`run_metrics` and :func:`warp_error_summary`
+summarise.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ from pienerf.reports import TimeBreakdown, VolumeHistory
 from pienerf.scenes import SCENES
 from pienerf.session import SCENE_SETUPS, Simulation, SimulationConfig
 from pienerf.solver import PlaneCollider, SphereCollider, StepReport
+from pienerf.warp_error import WarpErrorProbe
 
 __all__ = [
     "MAX_COORDINATE",
@@ -58,6 +61,7 @@ __all__ = [
     "keyframe",
     "load_scenario",
     "frame_count",
+    "measure_warp_error",
     "merged_breakdown",
     "nerf_fit",
     "prepare_nerf",
@@ -69,6 +73,7 @@ __all__ = [
     "scenario_outputs",
     "unmet_requirement",
     "volume_sample_frames",
+    "warp_error_summary",
 ]
 
 _VEC3 = "vec3"
@@ -136,6 +141,7 @@ _SCHEMA = {
         "smoke": dict,
         "pending": list,
         "nerf": dict,
+        "warp_error": dict,
     },
     "scene": {"name": str, "floor": bool, "default_pins": bool},
     "material": {
@@ -188,6 +194,7 @@ _SCHEMA = {
         "shadow": bool,
         "fps": _Number(float, 1.0, 1000.0, "frames/s"),
         "modes": list,
+        "mesh_edge_fraction": _Number(float, 0.0, 10.0, low_open=True),
     },
     "variants": {"name": str, "label": str, "material": dict, "discretization": dict, "modes": list},
     "volume_samples": {"time": _TIME, "label": str},
@@ -219,6 +226,7 @@ _SCHEMA = {
         "grid_decay": _Number(float, 0.0, 1.0, low_open=True),
         "solid_resolution": _Number(int, 8, 1024),
     },
+    "warp_error": {"region": list, "dilation": _Number(float, 0.0, 1000.0, "px"), "label": str},
 }
 """Every key a scenario may hold, per table: its type, and for a number its range and unit (:class:`_Number`)."""
 
@@ -458,6 +466,19 @@ def _check_structure(scenario: dict) -> None:
                 _check_keys(collider["keys"], f"colliders[{i}].keys")
         else:
             raise ScenarioError(f"'colliders[{i}].type' must be 'plane' or 'sphere', got {kind!r}")
+    warp_error = scenario.get("warp_error")
+    if warp_error is not None:
+        if nerf is None:
+            raise ScenarioError("[warp_error] compares warped-NeRF renders with the mesh; add a [nerf] table")
+        box = warp_error.get("region")
+        if not (isinstance(box, list) and len(box) == 2):
+            raise ScenarioError(
+                f"'warp_error.region' must be a rest-space box [[x0, y0, z0], [x1, y1, z1]] (m), got {box!r}"
+            )
+        for corner in box:
+            _check_vec3(corner, "warp_error.region")
+        if any(a > b for a, b in zip(box[0], box[1], strict=True)):
+            raise ScenarioError(f"'warp_error.region' must list its low corner first, got {box!r}")
     for i, sample in enumerate(scenario.get("volume_samples", [])):
         for key in ("time", "label"):
             if key not in sample:
@@ -578,8 +599,10 @@ class StepTally:
 
 @dataclass
 class ScenarioRun:
-    """One variant of a scenario: its simulation, volume history, drag, render modes, how its steps ended, and the
-    label its tiles carry when a frame shows several variants (the variant's ``label``, else its name)."""
+    """One variant of a scenario: its simulation, volume history, drag, render modes, how its steps ended, the
+    label its tiles carry when a frame shows several variants (the variant's ``label``, else its name), and, under a
+    ``[warp_error]`` table, the probe of its warped-NeRF modes with one record per measured frame
+    (:func:`measure_warp_error`)."""
 
     name: str
     simulation: Simulation
@@ -588,6 +611,8 @@ class ScenarioRun:
     modes: list
     label: str = ""
     tally: StepTally = field(default_factory=StepTally)
+    warp_error: WarpErrorProbe | None = None
+    warp_errors: list = field(default_factory=list)
 
 
 @dataclass
@@ -767,6 +792,7 @@ def build_run(
         drag_max_acceleration=solver.get("max_acceleration"),
         cuts=cuts or None,
         nerf_solid_resolution=nerf.solid_resolution if nerf is not None else None,
+        mesh_edge_fraction=scenario_outputs(scenario).get("mesh_edge_fraction"),
     )
     simulation = Simulation(config)
     for warp in nerf.warps if nerf is not None else []:
@@ -785,14 +811,51 @@ def build_run(
     if len(drags) > 1:
         raise ScenarioError("at most one [[drags]] entry: the drag is the mouse; use [[forces]] for further loads")
     volumes = VolumeHistory(simulation.volume())
+    run_modes = list(variant.get("modes", modes if modes is not None else ["mesh"]))
     return ScenarioRun(
         variant.get("name", "default"),
         simulation,
         volumes,
         drags,
-        list(variant.get("modes", modes if modes is not None else ["mesh"])),
+        run_modes,
         variant.get("label", variant.get("name", "default")),
+        warp_error=_warp_error_probe(scenario, simulation, nerf, run_modes),
     )
+
+
+def _warp_error_probe(scenario: dict, simulation: Simulation, nerf, modes: list) -> WarpErrorProbe | None:
+    """The ``[warp_error]`` probe of a run that renders warped-NeRF modes, or ``None``: its reference is the run's
+    own mesh preview (refined as ``outputs.mesh_edge_fraction`` asks)."""
+    spec = scenario.get("warp_error")
+    warps = {mode: warp for warp, mode in NERF_WARPS.items() if mode in modes}
+    if spec is None or nerf is None or not warps:
+        return None
+    try:
+        return WarpErrorProbe(
+            simulation.model,
+            simulation.render_backends["mesh"].body_mesh(),
+            nerf.field,
+            nerf.grid,
+            warps,
+            tuple(spec["region"]),
+            dilation=spec.get("dilation", 2.0),
+            label=spec.get("label", "region"),
+        )
+    except ValueError as error:
+        raise ScenarioError(f"'warp_error.region': {error}") from None
+
+
+def measure_warp_error(run: ScenarioRun, scenario: dict, t: float) -> dict | None:
+    """Measure each warped-NeRF mode of ``run`` against its mesh at the current state, seen by the cameras of time
+    ``t`` (s) (:class:`pienerf.warp_error.WarpErrorProbe`); records the frame in ``run.warp_errors`` and returns
+    ``{mode: {"psnr_db", "silhouette_iou", "pixels"}}``, or ``None`` when the run has no probe."""
+    if run.warp_error is None:
+        return None
+    simulation = run.simulation
+    cameras = scenario_cameras(scenario, simulation.centre, t)
+    errors = {mode: error.to_dict() for mode, error in run.warp_error.measure(simulation.state.q, cameras).items()}
+    run.warp_errors.append(errors)
+    return errors
 
 
 def apply_controls(run: ScenarioRun, scenario: dict, t: float) -> None:
@@ -907,14 +970,49 @@ def merged_breakdown(runs: list[ScenarioRun]) -> TimeBreakdown:
 
 
 def run_metrics(run: ScenarioRun, step_seconds: list[float]) -> dict:
-    """A run's summary, median step time, volumes, largest displacement (m) and how its solver steps ended."""
+    """A run's summary, median step time, volumes, largest displacement (m), how its solver steps ended, the size
+    of the mesh its mesh tiles show (the scene's, or refined by ``outputs.mesh_edge_fraction``) and, under
+    ``[warp_error]``, :func:`warp_error_summary`."""
     simulation = run.simulation
     displacement = simulation.particle_positions() - simulation.model.position.float().cpu()
+    mesh = simulation.render_backends["mesh"]
     return {
         "summary": simulation.summary(),
+        "mesh_preview": {
+            "scene_vertices": simulation.mesh_vertices.shape[0],
+            "vertices": mesh.body_vertices,
+            "max_edge_m": mesh.max_edge,
+        },
         "step_seconds_median": float(np.median(step_seconds)) if step_seconds else None,
         "volume": {"labels": run.volumes.labels, "relative": run.volumes.relative().tolist()},
         "final_relative_volume": simulation.volume() / run.volumes.rest_volume,
         "final_max_displacement_m": float(displacement.norm(dim=1).max()),
         "solver": run.tally.to_dict(),
+        **({"warp_error": warp_error_summary(run)} if run.warp_error is not None else {}),
     }
+
+
+def warp_error_summary(run: ScenarioRun) -> dict:
+    """Per warped-NeRF mode, the frames' ``psnr_db``, ``silhouette_iou`` and ``pixels`` (lists, one entry per
+    measured frame, ``None`` where the region held nothing) and their means over the frames that had a value; with
+    the region: its label, rest-space box (m), particle count, dilation (px) and definition."""
+    probe = run.warp_error
+    summary = {
+        "region": {
+            "label": probe.label,
+            "box_m": [list(corner) for corner in probe.region],
+            "particles": probe.particle_count,
+            "dilation_px": probe.dilation,
+            "definition": "pixels within the projected particle radius + dilation of a deformed particle that rests "
+            "in the box, covered by the mesh's or the NeRF's silhouette (alpha > 0.5); no ground in either render",
+        },
+        "modes": {},
+    }
+    for mode in probe.nerfs:
+        frames = [record[mode] for record in run.warp_errors]
+        entry = {key: [f[key] for f in frames] for key in ("psnr_db", "silhouette_iou", "pixels")}
+        for key in ("psnr_db", "silhouette_iou"):
+            values = [v for v in entry[key] if v is not None and math.isfinite(v)]
+            entry[f"mean_{key}"] = float(np.mean(values)) if values else None
+        summary["modes"][mode] = entry
+    return summary

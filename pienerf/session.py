@@ -120,6 +120,10 @@ class SimulationConfig:
         seed: seed of the particle sampling.
         nerf_solid_resolution: for a NeRF checkpoint scene, cells along the longest edge of the grid on which its
             solid and proxy mesh are found (:class:`pienerf.nerf_solid.NerfSceneDensity`).
+        mesh_edge_fraction: the ``"mesh"`` preview splits the mesh's edges until each is shorter than this fraction
+            of the smallest kernel support radius (the length over which the Q-GMLS field bends), so a bent thin
+            part shows its bend (:func:`pienerf.mesh_refine.split_long_edges`); ``None`` renders the scene's mesh as
+            it is. Picking uses the refined surface; :meth:`deformed_mesh_vertices` keeps the scene's vertices.
     """
 
     scene: str = "plant"
@@ -135,6 +139,7 @@ class SimulationConfig:
     pin_stiffness: float | None = None
     seed: int = 0
     nerf_solid_resolution: int = 96
+    mesh_edge_fraction: float | None = None
 
     def __post_init__(self):
         if not (self.dt > 0 and math.isfinite(self.dt)):
@@ -143,6 +148,10 @@ class SimulationConfig:
             raise ValueError(f"pin_stiffness must be a finite positive N/m (or None), got {self.pin_stiffness!r}")
         if self.particle_radius is not None and not (0 < self.particle_radius < math.inf):
             raise ValueError(f"particle_radius must be a positive length in metres, got {self.particle_radius!r}")
+        if self.mesh_edge_fraction is not None and not (0 < self.mesh_edge_fraction < math.inf):
+            raise ValueError(
+                f"mesh_edge_fraction must be a finite number > 0 (or None), got {self.mesh_edge_fraction!r}"
+            )
         if self.scene not in SCENES and not Path(self.scene).is_file():
             raise ValueError(
                 f"unknown scene {self.scene!r}: use one of {', '.join(SCENES)}, a mesh file path or a "
@@ -298,8 +307,14 @@ class Simulation:
                 renderer.rebind(self.model)
         if self.nerf is not None and "nerf" not in self.render_backends:
             self.add_nerf_render(self.nerf.field, self.nerf.grid)
+        fraction = self.config.mesh_edge_fraction
         self._mesh_backend = MeshRenderBackend(
-            self.model, self.mesh_vertices, self.mesh_faces, self.mesh_colors, 0.0 if self.config.floor else None
+            self.model,
+            self.mesh_vertices,
+            self.mesh_faces,
+            self.mesh_colors,
+            0.0 if self.config.floor else None,
+            max_edge=None if fraction is None else fraction * float(self.model.basis.support_radius.min()),
         )
         self.render_backends["mesh"] = self._mesh_backend
         self.particle_colors = self._nearest_vertex_colors(self.particles.position.cpu())
@@ -521,8 +536,10 @@ class Simulation:
 
     def deformed_mesh_vertices(self) -> torch.Tensor:
         """``[V, 3]`` float32 scene mesh vertices at the current state (m), a new tensor the caller owns (the mesh
-        backend deforms its picking surface in place, so a view of it would change under the caller)."""
-        return self._mesh_backend.deform(self.state.q).to("cpu", copy=True)
+        backend deforms its picking surface in place, so a view of it would change under the caller). With
+        ``mesh_edge_fraction`` these are the leading vertices of the refined preview mesh: the scene's own, which
+        :attr:`mesh_faces` index."""
+        return self._mesh_backend.deform(self.state.q)[: self.mesh_vertices.shape[0]].to("cpu", copy=True)
 
     def particle_positions(self) -> torch.Tensor:
         """``[P, 3]`` deformed particle positions (m)."""

@@ -124,6 +124,18 @@ def test_label_tile_writes_the_text_into_its_corner():
     assert (labelled[-14:, :30, :3] < 0.1).all(-1).sum() > 10  # the black letters
 
 
+def test_a_second_label_line_is_drawn_where_the_tile_has_room_for_it():
+    import torch
+
+    text = "Q-GMLS: NeRF, quadratic warp\nvs mesh on rod: 24.1 dB, IoU 0.83"
+    for height, lines in ((192, 2), (36, 1)):
+        tile = torch.zeros(height, 256, 4)
+        boxed = (render.label_tile(tile, text)[..., 3] > 0.5).any(-1).sum()
+        one_line = (render.label_tile(tile, text.split("\n")[0])[..., 3] > 0.5).any(-1).sum()
+        assert (boxed > one_line) == (lines == 2), f"{lines} line(s) on a tile {height} px tall"
+        assert boxed <= height / 3 or lines == 1
+
+
 def test_bad_scenarios_fail_with_one_line_naming_the_key(device, tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('[scene]\nname = "jelly"\n[material]\nyoungs_modulus = 1e4\n[cameras]\ntype = "orbit"\n')
@@ -153,6 +165,7 @@ def _check_nerf_outputs(name: str, out: Path, metrics: dict, cache: Path) -> Non
         alike = np.abs(quadratic[..., :3] - mesh[..., :3]).sum(-1) < 0.3
         assert alike.mean() > 0.5, "the NeRF render looks like the mesh render of the same state"
         assert list((cache / "scenes").glob("teapot-*/ngp-*.pt")), "the fitted NeRF is cached"
+        _check_warp_error(metrics)
     elif name == "lego":
         checkpoint = Path(metrics["nerf"]["checkpoint"])
         assert checkpoint.is_file() and checkpoint.is_relative_to(cache)
@@ -161,6 +174,25 @@ def _check_nerf_outputs(name: str, out: Path, metrics: dict, cache: Path) -> Non
         width, height, depth = summary["bounding_box_m"]
         assert 0.8 < width < 1.6 and 1.0 < height < 2.0 and 1.5 < depth < 2.6, "the excavator stands upright"
         assert 0.05 < (frame[..., 3] > 0.5).mean() < 0.95
+
+
+def _check_warp_error(metrics: dict) -> None:
+    """Fig. 8's numbers: every frame, each warping of the Q-GMLS variant's NeRF against its mesh on the rod, finite
+    and in range; the mesh tiles show a mesh refined past the scene's (the rod's rings: tests/pienerf)."""
+    for variant in metrics["variants"].values():
+        preview = variant["mesh_preview"]
+        assert preview["vertices"] > preview["scene_vertices"] and 0 < preview["max_edge_m"] < 0.3
+    assert "warp_error" not in metrics["variants"]["linear"], "the linear GMLS variant renders no NeRF"
+    warp_error = metrics["variants"]["quadratic"]["warp_error"]
+    assert warp_error["region"]["label"] == "rod" and warp_error["region"]["particles"] > 0
+    assert set(warp_error["modes"]) == {"nerf", "nerf_linear"}
+    for mode in warp_error["modes"].values():
+        assert len(mode["psnr_db"]) == len(mode["silhouette_iou"]) == len(mode["pixels"]) == metrics["frames"]
+        for psnr_db, iou, pixels in zip(mode["psnr_db"], mode["silhouette_iou"], mode["pixels"], strict=True):
+            assert pixels > 0 and 0.0 < psnr_db < 100.0 and 0.0 <= iou <= 1.0
+        assert min(mode["psnr_db"]) <= mode["mean_psnr_db"] <= max(mode["psnr_db"])
+    for record in metrics["per_frame"]:
+        assert set(record["quadratic_warp_error"]) == {"nerf", "nerf_linear"}
 
 
 def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_path, monkeypatch):

@@ -79,6 +79,8 @@ def test_the_toml_writer_round_trips_the_project_scenarios():
         ("material", "young_modulus", "-5.0", "'material.young_modulus' must be a number in (0, 1e+12] Pa"),
         ("cameras", "width", "100000", "'cameras.width' must be an integer in [1, 8192] px"),
         ("smoke", "frames", "0", "'smoke.frames' must be an integer in [1, "),
+        ("outputs", "mesh_edge_fraction", "0.0", "'outputs.mesh_edge_fraction' must be a number in (0, 10]"),
+        ("warp_error", "dilation", "-2.0", "'warp_error.dilation' must be a number in [0, 1000] px"),
     ],
 )
 def test_out_of_range_numbers_name_the_key_and_the_range(tmp_path, table, key, value, says):
@@ -110,6 +112,16 @@ def test_structure_errors_name_the_field(tmp_path):
     cameras = '[scene]\nname = "jelly"\n[cameras]\ntype = "spiral"\n'
     assert "'cameras.type' must be 'orbit' or 'fixed', got 'spiral'" in _error(tmp_path, cameras)
     assert "'outputs.modes' must not be empty" in _error(tmp_path, BASE + "[outputs]\nmodes = []\n")
+
+
+def test_the_warp_error_table_needs_a_nerf_and_a_box(tmp_path):
+    table = "[warp_error]\nregion = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]\n"
+    assert "compares warped-NeRF renders with the mesh; add a [nerf] table" in _error(tmp_path, BASE + table)
+    nerf = BASE + "[nerf]\n"
+    assert "'warp_error.region' must be a rest-space box" in _error(tmp_path, nerf + "[warp_error]\nregion = [1.0]\n")
+    flipped = "[warp_error]\nregion = [[1.0, 0.0, 0.0], [0.0, 1.0, 1.0]]\n"
+    assert "'warp_error.region' must list its low corner first" in _error(tmp_path, nerf + flipped)
+    assert _load_text(tmp_path, nerf + table)["warp_error"]["region"][1] == [1.0, 1.0, 1.0]
 
 
 def test_the_project_scenarios_load_with_their_values_kept(tmp_path):
