@@ -67,6 +67,13 @@ class SolverConfig:
             uncaptured.
         line_search_batch: trial steps (1, 1/2, 1/4, …) the device loop evaluates per Newton iteration; a step
             that needs more halvings is redone by the host loop.
+        factor_reuse: later steps that may reuse a step's Cholesky factor instead of assembling and factoring
+            their own (modified Newton across steps, device loop only): 0 never. A step that reuses it and then
+            contracts slowly (its last Newton update above 2^-(iterations−1) of its first), halves a step, or
+            (with ``newton_tolerance`` > 0) does not converge is taken again with its own factor, which is kept
+            instead; a change of controls, dt or material drops it too. Every direction is a descent direction
+            (the factor is of an SPD matrix) and the line search keeps the never-invert guarantee, so a step that
+            reuses the factor ends where Newton's would, to the tolerance.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -80,6 +87,7 @@ class SolverConfig:
     project_hessian: bool = True
     device_loop: bool | None = None
     line_search_batch: int = 3
+    factor_reuse: int = 0
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
@@ -96,6 +104,10 @@ class SolverConfig:
                              f"{self.contact_stiffness!r}")
         if self.line_search_batch < 1:
             raise ValueError("line_search_batch must be >= 1")
+        if self.factor_reuse < 0:
+            raise ValueError(f"factor_reuse must be >= 0 steps, got {self.factor_reuse}")
+        if self.factor_reuse and self.rayleigh_beta:
+            raise ValueError("factor_reuse needs rayleigh_beta = 0: stiffness damping uses each step's own K(q_n)")
         if self.hessian_updates is not None and self.hessian_updates < 1:
             raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
 
@@ -182,6 +194,7 @@ class StepReport:
             iteration started: the step is not a solution of Eq. 2.
         device_loop: the step ran as the device loop (:meth:`SolverQGMLS.step`); its phases are then not timed
             apart, and ``time_device_loop`` holds the whole step.
+        factor_reused: the step reused an earlier step's Cholesky factor (``SolverConfig.factor_reuse``).
     """
 
     iterations: int = 0
@@ -195,6 +208,7 @@ class StepReport:
     time_solve: float = 0.0
     time_other: float = 0.0
     device_loop: bool = False
+    factor_reused: bool = False
     time_device_loop: float = 0.0
 
     @property
@@ -217,6 +231,7 @@ class SolverQGMLS:
         self.config = config
         self.integrator = model.integrator(material)
         self.device_loop_redos = 0  # device-loop steps the host loop redid (:meth:`step`)
+        self.factor_refreshes = 0  # steps retaken with their own factor, the kept one no longer serving
         self.set_material(material)
 
     def set_material(self, material: Material) -> None:
@@ -491,17 +506,29 @@ class SolverQGMLS:
         clock = time.perf_counter()
         loop = self._device_loop_for(control, float(dt))
         loop.load(state_in, control)
-        q, qd, stats = loop.call()
-        iterations, energy, last_update, min_det, halvings, converged, redo = stats.tolist()  # the one read
+        reuse = loop.factor_age is not None and loop.factor_age < self.config.factor_reuse
+        q, qd, stats = loop.call_reuse() if reuse else loop.call()
+        iterations, energy, last_update, min_det, halvings, converged, redo, first_update = stats.tolist()  # one read
+        if reuse and not redo:
+            slow = halvings > 0 or (iterations > 1 and last_update > 0.5 ** (iterations - 1) * first_update)
+            if slow or (self.config.newton_tolerance > 0 and not converged):
+                # The kept factor no longer serves: this step is taken again with its own, which is then kept.
+                self.factor_refreshes += 1
+                reuse = False
+                q, qd, stats = loop.call()
+                iterations, energy, last_update, min_det, halvings, converged, redo, first_update = stats.tolist()
         if redo:
             self.device_loop_redos += 1
+            loop.factor_age = None
             return None
+        if self.config.factor_reuse:
+            loop.factor_age = loop.factor_age + 1 if reuse else 0
         state_out.q.copy_(q)
         state_out.qd.copy_(qd)
         state_out.time = state_in.time + dt
         return StepReport(
             iterations=int(iterations), energy=energy, last_update=last_update, min_det=min_det,
-            line_search_halvings=int(halvings), converged=bool(converged), device_loop=True,
+            line_search_halvings=int(halvings), converged=bool(converged), device_loop=True, factor_reused=reuse,
             time_device_loop=time.perf_counter() - clock,
         )
 
@@ -656,7 +683,13 @@ class _DeviceLoop:
         trials = min(solver.config.line_search_batch, solver.config.line_search_steps)
         self.trial_lengths = [0.5**j for j in range(trials)]  # 1, 1/2, 1/4, …: the host loop's first trials
         self.step_lengths = torch.tensor(self.trial_lengths, dtype=torch.float64, device=device)
-        self.call = backend.CapturedCall(self._newton)
+        self.call = backend.CapturedCall(lambda: self._newton(reuse=False))
+        # factor_reuse: the last fresh factor, kept for the steps that reuse it (call_reuse)
+        self.factor_age: int | None = None  # steps since the kept factor was made; None: nothing kept
+        self.kept_factor = None
+        if solver.config.factor_reuse:
+            self.kept_factor = torch.zeros(3 * n, 3 * n, dtype=torch.float64, device=device)
+            self.call_reuse = backend.CapturedCall(lambda: self._newton(reuse=True))
 
     def load(self, state: StateQGMLS, control: ControlQGMLS) -> None:
         """Copy this step's inputs into the buffers the graph reads."""
@@ -714,8 +747,9 @@ class _DeviceLoop:
                 H = part if H is None else H + part
         return energy, grad, H
 
-    def _newton(self):
-        """The Newton loop of the host loop, every decision a tensor: returns q, q̇ and the step's statistics."""
+    def _newton(self, reuse: bool):
+        """The Newton loop of the host loop, every decision a tensor: returns q, q̇ and the step's statistics.
+        ``reuse``: every iteration solves with the kept factor (no assembly of a Hessian, no factorisation)."""
         solver, config = self.solver, self.solver.config
         dt, integrator = self.dt, solver.integrator
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
@@ -735,9 +769,10 @@ class _DeviceLoop:
         iterations, halvings, energy_out, last_update, min_det = (zero.clone() for _ in range(5))
         min_det += 1.0
         lengths = self.step_lengths
-        q, damping_K, factor = q_n.clone(), None, None
+        q, damping_K, factor = q_n.clone(), None, self.kept_factor if reuse else None
+        first_update = zero
         for iteration in range(config.newton_iterations):
-            fresh = config.hessian_updates is None or iteration < config.hessian_updates
+            fresh = not reuse and (config.hessian_updates is None or iteration < config.hessian_updates)
             elastic = integrator.evaluate(q, hessian=fresh, project=config.project_hessian)
             if beta and damping_K is None:
                 damping_K = elastic.hessian.clone()
@@ -759,6 +794,8 @@ class _DeviceLoop:
                         H += part
                 factor, info = torch.linalg.cholesky_ex(H)
                 redo = redo | (info != 0)  # the host loop shifts a singular matrix
+                if self.kept_factor is not None:
+                    self.kept_factor.copy_(factor)
             step = torch.cholesky_solve(-grad.reshape(-1, 1), factor).view_as(q)
 
             energy = solver._incremental_energy(q, q_hat, q_n, inv_h, f_ext, damping_K, elastic.energy)
@@ -789,10 +826,12 @@ class _DeviceLoop:
             energy_out = torch.where(active, torch.where(found, _pick(trial_energy, first), energy), energy_out)
             min_det = torch.where(active, torch.where(found, _pick(trial_det, first), elastic.min_det), min_det)
             last_update = torch.where(active, update, last_update)
+            if iteration == 0:
+                first_update = update
             done = done | (active & (~found | (update < config.newton_tolerance)))
         qd = (q - q_n) * inv_h
         stats = torch.stack([iterations, energy_out, last_update, min_det, halvings.to(zero.dtype),
-                             (done & ~redo).to(zero.dtype), redo.to(zero.dtype)])
+                             (done & ~redo).to(zero.dtype), redo.to(zero.dtype), first_update])
         return q, qd, stats
 
 

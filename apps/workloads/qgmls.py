@@ -108,3 +108,40 @@ def bench_qgmls_step(device: str, size: str) -> Case:
 def bench_qgmls_step_modified(device: str, size: str) -> Case:
     config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0, hessian_updates=1)
     return _step_case(size, config, "same step, host loop, torch material response")
+
+
+@workload("qgmls_step_reuse", "as qgmls_step along a drag moving 1 mm a step, a factor reused by up to 8 later steps")
+def bench_qgmls_step_reuse(device: str, size: str) -> Case:
+    """Each repetition steps the state on (the drag target rises 1 mm a step), so the kept factor ages as in a drag
+    in the viewer; the record gives the share of steps that reused a factor and the refreshes."""
+    config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0, factor_reuse=8)
+    model = _box_model(size)
+    pin = model.handle(model.position[model.position[:, 0] < model.position[:, 0].min() + 0.03])
+    tip = model.handle(model.position[model.position[:, 0].argmax()].unsqueeze(0))
+    lift = torch.tensor([[0.0, 1e-3, 0.0]], dtype=torch.float64, device=model.device)
+    solvers = {"run": SolverQGMLS(model, Material(), config),
+               "reference": SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))}
+    solvers["reference"].integrator.response = material_response_batched
+    runs = {name: {"state": solver.rest_state(), "target": tip.rest.clone(), "reports": []}
+            for name, solver in solvers.items()}
+
+    extra = {}
+
+    def step(name):
+        run = runs[name]
+        run["target"] += lift
+        springs = [PointTargets(pin, pin.rest.clone(), 1e6), PointTargets(tip, run["target"], 1e3)]
+        run["reports"].append(solvers[name].step(run["state"], run["state"], ControlQGMLS(springs=springs), 1 / 60))
+        reports = runs["run"]["reports"]
+        extra.update(reused_share=sum(r.factor_reused for r in reports) / max(len(reports), 1),
+                     factor_refreshes=solvers["run"].factor_refreshes, steps=len(reports))
+
+    return Case(
+        run=lambda: step("run"),
+        reference=lambda: step("reference"),
+        params={**_params(model), "newton_iterations": 3, "factor_reuse": 8, "dt_s": 1.0 / 60.0},
+        work=1.0,
+        unit="steps/s",
+        reference_name="Newton, a factor each step, host loop, torch material response",
+        extra=extra,
+    )

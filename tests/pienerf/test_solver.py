@@ -277,3 +277,30 @@ def test_device_loops_follow_the_controls_and_the_material(device):
     assert len(solver._device_loops) == 0
     report = solver.step(state, state, ControlQGMLS(springs=[pins]), 1e-2)
     assert report.device_loop and report.iterations >= 1
+
+
+def test_kept_factor_reaches_newtons_steps_and_is_renewed_when_it_stops_serving(device):
+    """factor_reuse: along a moving drag, steps that reuse an earlier factor converge to the steps of Newton with its
+    own factor each step, to the tolerance; a step that does not converge with the kept factor is taken again with
+    its own, which is kept from then on."""
+    model = box_model(backend.torch_device())
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    tip = model.handle(model.position[model.position[:, 0].argmax()][None])
+    common = {"newton_iterations": 12, "newton_tolerance": 1e-9, "rayleigh_alpha": 1.0}
+    newton = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(**common, device_loop=False))
+    reusing = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(**common, device_loop=True, factor_reuse=3))
+    states, reused = [newton.rest_state(), reusing.rest_state()], []
+    for i in range(8):
+        lift = torch.tensor([[0.0, 0.01 * (i + 1), 0.0]], dtype=torch.float64, device=model.device)
+        springs = [PointTargets(pin, pin.rest.clone(), 1e5), PointTargets(tip, tip.rest + lift, 5e3)]
+        control = ControlQGMLS(springs=springs)
+        reports = [solver.step(state, state, control, 1e-2) for solver, state in zip((newton, reusing), states,
+                                                                                      strict=True)]
+        assert reports[0].converged and reports[1].converged
+        torch.testing.assert_close(states[1].q, states[0].q, rtol=0, atol=1e-6)
+        reused.append(reports[1].factor_reused)
+    assert reused[0] is False and sum(reused) >= 3  # the first step makes the factor; later ones reuse it
+    assert reusing.factor_refreshes >= 1  # at least one step stopped converging with the kept factor
+    assert all(not reused[i] for i in range(len(reused)) if i >= 3 and all(reused[i - 3:i]))  # at most 3 reuses
+    with pytest.raises(ValueError, match="factor_reuse needs rayleigh_beta = 0"):
+        SolverConfig(factor_reuse=2, rayleigh_beta=0.1)
