@@ -38,10 +38,11 @@ def test_radius_neighbours_truncated_rows_keep_true_count(device):
         assert (row[min(int(c), 4) :] == -1).all()
 
 
-def test_knn_matches_brute_force_on_random_points(device):
+@pytest.mark.parametrize("k", [3, 8])  # k = 3 keeps its best in registers, any other k in the row
+def test_knn_matches_brute_force_on_random_points(device, k):
     points, queries = _cloud(2000, 4), _cloud(400, 5, scale=1.4, shift=-0.2)
-    index, distance = knn(points, queries, 8, 0.5)
-    expected_index, expected_distance = reference.knn(points.cpu(), queries.cpu(), 8, 0.5)
+    index, distance = knn(points, queries, k, 0.5)
+    expected_index, expected_distance = reference.knn(points.cpu(), queries.cpu(), k, 0.5)
     torch.testing.assert_close(distance.cpu(), expected_distance, rtol=1e-6, atol=1e-7)
     assert torch.equal(index.cpu().long(), expected_index)
 
@@ -54,10 +55,11 @@ def test_knn_breaks_ties_by_index(device):
     cell_corners = points[(points < 1.2).all(dim=1)][:20]
     queries = torch.cat([cell_corners + 0.125, points[20:40]])
     device_points, device_queries = points.to(backend.torch_device()), queries.to(backend.torch_device())
-    index, distance = knn(device_points, device_queries, 10, 1.0)
-    expected_index, expected_distance = reference.knn(points, queries, 10, 1.0)
-    assert torch.equal(distance.cpu(), expected_distance)
-    assert torch.equal(index.cpu().long(), expected_index)
+    for k in (3, 10):
+        index, distance = knn(device_points, device_queries, k, 1.0)
+        expected_index, expected_distance = reference.knn(points, queries, k, 1.0)
+        assert torch.equal(distance.cpu(), expected_distance)
+        assert torch.equal(index.cpu().long(), expected_index)
     assert bool((distance[:20, 0] == distance[:20, 7]).all()), "cell-centre queries have 8 equidistant corners"
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import kernels.warp_rays as warp_rays_module
 from kernels import backend
 from kernels.backend import FRAMEWORKS
 from kernels.reference.warp_rays import quadratic_map_torch, warp_to_rest_torch
@@ -151,11 +152,13 @@ def _round_inputs(rays: int, k: int, seed: int):
     return samples_d, counts.to(dev), deformed_d, displacement_d, F_d, grad_F_d, cutoff_d, occupancy.to(dev), box
 
 
+@pytest.mark.parametrize("exhaustive_ips", [0, 512], ids=["grid_search", "exhaustive_search"])
 @pytest.mark.parametrize("framework", FRAMEWORKS)
-def test_round_warp_matches_knn_warp_and_occupancy(device, framework):
+def test_round_warp_matches_knn_warp_and_occupancy(device, framework, exhaustive_ips, monkeypatch):
     """A round's fused warp (nearest IPs, Taylor inversion, rest-occupancy test) gives, on every filled slot, what
     :meth:`SpatialHash.knn`, :func:`warp_to_rest` and the grid lookup give one after the other; empty slots are
-    never kept."""
+    never kept. The nearest IPs come from the hash grid or, for few IPs, from every IP (Warp): the same rows."""
+    monkeypatch.setattr(warp_rays_module, "EXHAUSTIVE_IPS", exhaustive_ips)
     samples, counts, deformed, displacement, F, grad_F, cutoff, occupancy, box = _round_inputs(300, 6, seed=7)
     ip_hash = SpatialHash(deformed, 0.5 * SPACING)
     radius = 4 * SPACING
