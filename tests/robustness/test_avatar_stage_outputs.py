@@ -280,3 +280,20 @@ def test_a_full_disk_in_a_stage_exits_1_with_one_clear_line(device, monkeypatch,
     )
     assert not (out / "capture" / "inputs.npz").exists() and _leftovers(out) == []
     assert len(load_capture(out / "capture").images) == 6  # what was written is whole
+
+
+def test_ctrl_c_in_a_stage_command_keeps_the_earlier_files_and_exits_130(device, monkeypatch, tmp_path, capsys):
+    out = tmp_path / "out"
+    (out / "capture").mkdir(parents=True)
+    (out / "capture" / "transforms.json").write_bytes(EARLIER)
+
+    def interrupted_rendering(*args, **options):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(pipeline, "render_capture", interrupted_rendering)
+    assert avatar.main(["capture", "--smoke", "--out", str(out), "--device", device]) == 130
+    error = capsys.readouterr().err
+    assert error.strip().splitlines()[-1] == (
+        f"interrupted: the capture stage stopped (Ctrl-C); nothing written to {out}; no file was left half-written"
+    )
+    assert (out / "capture" / "transforms.json").read_bytes() == EARLIER and _leftovers(out) == []
