@@ -21,17 +21,20 @@ run one stage each, reading the earlier stages' folders under ``--out``; pass ``
 ``estimate --exact`` fits the true meshes instead of the tracked ones. Bad input prints one line and exits with
 status 2.
 
-``simulate`` checks ``--out`` before simulating and writes each file whole or not at all
-(:func:`pienerf.output_files.atomic_path`): a file from an earlier run is replaced only by a complete one. Ctrl-C
-during the simulation writes the frames finished so far (sequence, statistics and meshes, no video); Ctrl-C while
-writing keeps the files already written. Either way the command says what it kept and exits with status 130; a
-failed write (a full disk) exits with status 1.
+Every command checks ``--out`` and the result paths under it before any work and writes each file whole or not at
+all (:func:`pienerf.output_files.atomic_path`): a file from an earlier run is replaced only by a complete one.
+Ctrl-C during ``simulate``'s simulation writes the frames finished so far (sequence, statistics and meshes, no
+video); Ctrl-C during ``pipeline`` keeps the stages finished before it and names the stage command to go on with;
+Ctrl-C anywhere else keeps the files already written. Each time the command says what it kept and exits with status
+130; a failed write (a full disk) exits with status 1.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
 import math
 import sys
 from pathlib import Path
@@ -42,6 +45,7 @@ from physavatar import simulate as sim
 from physavatar.body import Body
 from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
 from physavatar.motion import MOTIONS, load_bvh, named_motion
+from physavatar.result_files import Staging
 from pienerf.output_files import atomic_path, check_output_folder
 
 SMOKE_FRAMES = 3
@@ -148,13 +152,17 @@ RESULT_FILES = ("sequence.npz", "stats.json", "video.mp4")
 """What ``simulate`` writes into ``--out`` (and ``meshes/`` with ``--meshes``)."""
 
 
-def _check_results_in_the_way(out: Path, meshes: bool) -> None:
-    """Refuse, before any work, a result path under ``out`` taken by something it cannot replace."""
-    for name in RESULT_FILES:
-        if (out / name).is_dir():
-            raise ValueError(f"{out / name} is a folder where a result file goes; remove it or pass another --out")
-    if meshes and (out / "meshes").exists() and not (out / "meshes").is_dir():
-        raise ValueError(f"{out / 'meshes'} is a file where the meshes folder goes; remove it or pass another --out")
+def _check_results_in_the_way(out: Path, names) -> None:
+    """Refuse, before any work, a result path under ``out`` taken by something it cannot replace, or a result
+    folder there that cannot be written into. ``names`` are relative to ``out``; a folder's ends with ``/``."""
+    for name in names:
+        path = out / name
+        if name.endswith("/"):
+            if path.exists() and not path.is_dir():
+                raise ValueError(f"{path} is a file where a result folder goes; remove it or pass another --out")
+            check_output_folder(path)
+        elif path.is_dir():
+            raise ValueError(f"{path} is a folder where a result file goes; remove it or pass another --out")
 
 
 def _write_results(result: sim.SimulationResult, args: argparse.Namespace, video: bool, written: list[str]) -> None:
@@ -185,7 +193,7 @@ def simulate_command(args: argparse.Namespace) -> int:
         )
     _check_motion(args.motion)
     check_output_folder(args.out)
-    _check_results_in_the_way(args.out, bool(args.meshes))
+    _check_results_in_the_way(args.out, RESULT_FILES + (("meshes/",) if args.meshes else ()))
     sim.require_video_encoder()  # before the simulation, not after it
     if args.garment is not None and not args.garment.is_file():
         raise FileNotFoundError(f"garment file {args.garment} does not exist; pass --garment PATH (OBJ or PLY)")
@@ -243,8 +251,44 @@ def _kept(out: Path, written: list[str]) -> str:
     return f"kept {out}/{', '.join(written)}; the file in progress was not written"
 
 
-def stage_command(args: argparse.Namespace) -> None:
+def _recording(written: list[Path]) -> Staging:
+    """:func:`atomic_path` that notes in ``written`` every file it puts in place, for the report of a run stopped
+    part way."""
+
+    @contextlib.contextmanager
+    def staging(path: Path):
+        with atomic_path(path) as temporary:
+            yield temporary
+        written.append(Path(path))
+
+    return staging
+
+
+def _kept_stages(out: Path, written: list[Path]) -> str:
+    """What a stage command stopped part way kept: the stages it finished whole, then the files of an unfinished one
+    (a folder's frames counted, not listed). No file is ever left half-written."""
+    if not written:
+        return f"nothing written to {out}; no file was left half-written"
+    done = [path.relative_to(out).as_posix() for path in written]
+    parts = []
+    for stage in pipeline.STAGES:
+        files = [name for name in done if name.startswith(f"{stage}/")]
+        whole = all(name in done for name in pipeline.OUTPUTS[stage] if not name.endswith("/"))
+        if whole:
+            parts.append(f"{stage}/ (whole)")
+            continue
+        folders: dict[str, list[str]] = {}
+        for name in files:
+            folders.setdefault(name.rpartition("/")[0], []).append(name)
+        for folder, names in folders.items():
+            parts.extend(names if len(names) <= 3 else [f"{folder}/ ({len(names)} files)"])
+    return f"kept in {out}: {', '.join(parts)}; no file was left half-written"
+
+
+def stage_command(args: argparse.Namespace) -> int:
     check_output_folder(args.out)
+    stages = pipeline.STAGES if args.command == "pipeline" else (args.command,)
+    _check_results_in_the_way(args.out, [name for stage in stages for name in pipeline.OUTPUTS[stage]])
     config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
     if args.frames is not None and args.frames > MAX_FRAMES:
         raise ValueError(f"--frames must be at most {MAX_FRAMES}, got {args.frames}")
@@ -262,20 +306,37 @@ def stage_command(args: argparse.Namespace) -> None:
     if changes:
         config = dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, **changes))  # range checks
     backend.init(args.device)
-    progress = pipeline.stderr_progress
-    if args.command == "pipeline":
-        report = pipeline.run(config, args.out, progress)
-        print(f"wrote {report}")
-        return
     stage = {
+        "pipeline": pipeline.run,
         "capture": pipeline.capture,
         "track": pipeline.track_stage,
-        "estimate": lambda c, o, p: pipeline.estimate(c, o, p, exact=args.exact),
+        "estimate": functools.partial(pipeline.estimate, exact=getattr(args, "exact", False)),
         "appearance": pipeline.appearance,
         "animate": pipeline.animate,
         "evaluate": pipeline.evaluate,
     }[args.command]
-    print(f"wrote {stage(config, args.out, progress)}")
+    written: list[Path] = []
+    try:
+        print(f"wrote {stage(config, args.out, pipeline.stderr_progress, staging=_recording(written))}")
+    except pipeline.PipelineInterrupted as stop:
+        again = f"python -m apps.avatar {stop.stage} --out {args.out}" + (" --smoke" if args.smoke else "")
+        print(
+            f"{stop} (Ctrl-C); {_kept_stages(args.out, written)}; to go on, run {again} and the stages after it",
+            file=sys.stderr,
+        )
+        return 130
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: the {args.command} stage stopped (Ctrl-C); {_kept_stages(args.out, written)}",
+            file=sys.stderr,
+        )
+        return 130
+    except FileNotFoundError:
+        raise  # an earlier stage's file is missing: named by the stage, exit status 2
+    except OSError as error:
+        print(f"error: {args.command} failed ({error}); {_kept_stages(args.out, written)}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -283,14 +344,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "simulate":
             return simulate_command(args)
-        stage_command(args)
+        return stage_command(args)
     except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"interrupted: {args.command} stopped", file=sys.stderr)
         return 130
-    return 0
 
 
 if __name__ == "__main__":

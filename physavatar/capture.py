@@ -33,13 +33,16 @@ top-left corner) has its centre at ``(i + ½, j + ½)`` and its ray leaves along
 Files (:func:`write_capture`): a NeRF-synthetic style ``transforms.json`` (shared intrinsics ``camera_angle_x``,
 ``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``; ``fps``; ``lighting``; one frame per (time, camera) with
 ``file_path``, ``mask_path``, ``transform_matrix``, ``camera`` and ``time_index``), 8-bit PNG images and masks,
-and ``truth.npz`` holding what evaluation needs and the pipeline must not see (meshes, albedo, parameters).
+and ``truth.npz`` holding what evaluation needs and the pipeline must not see (meshes, albedo, parameters). Each file
+goes through a staging step passed in (:mod:`physavatar.result_files`), so a program can have every one written whole
+or not at all; ``transforms.json``, the index a reader opens first, comes last.
 
 Cost: a pixel that sees the scene costs 2 + ``ao_samples`` rays (figures in ``docs/benchmarks.md``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -54,6 +57,7 @@ import torch
 
 from kernels import backend
 from kernels.raycast import MeshBVH
+from physavatar.result_files import Staging, write_arrays, write_json, write_png
 
 __all__ = [
     "Capture",
@@ -698,8 +702,10 @@ def _scene_albedo(garment, body, garment_face_count: int, face_count: int) -> to
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def write_capture(capture: Capture, folder: str | Path, truth: dict | None = None) -> Path:
-    """Write a capture as ``transforms.json`` + ``images/*.png`` + ``masks/*.png`` (+ ``truth.npz``).
+def write_capture(
+    capture: Capture, folder: str | Path, truth: dict | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Write a capture as ``images/*.png`` + ``masks/*.png`` (+ ``truth.npz``) + ``transforms.json``, in that order.
 
     Args:
         capture: the capture (images are stored as 8-bit PNG: exact for a capture rendered with ``quantize``).
@@ -707,13 +713,17 @@ def write_capture(capture: Capture, folder: str | Path, truth: dict | None = Non
         truth: values for evaluation only (e.g. ``garment_frames``, ``body_frames``, faces, albedo, simulation
             parameters): tensors and arrays are stored as arrays, other values (numbers, strings, dicts,
             dataclasses) as JSON; read back with :func:`load_truth`.
+        staging: the step every file is written through (:data:`physavatar.result_files.Staging`); the default
+            writes each path itself.
 
     Returns:
         The path of ``transforms.json``.
-    """
-    from PIL import Image
 
+    Raises:
+        ValueError: a truth key or value that cannot be stored (before any file is written).
+    """
     folder = Path(folder)
+    truth_arrays = None if truth is None else _encode_truth(truth)
     (folder / "images").mkdir(parents=True, exist_ok=True)
     (folder / "masks").mkdir(parents=True, exist_ok=True)
     rig = capture.rig
@@ -723,8 +733,8 @@ def write_capture(capture: Capture, folder: str | Path, truth: dict | None = Non
     for t in range(capture.frame_count):
         for c in range(capture.camera_count):
             name = f"t{t:04d}_c{c:02d}.png"
-            Image.fromarray(images[t, c], "RGB").save(folder / "images" / name)
-            Image.fromarray(masks[t, c].astype(np.uint8) * 255, "L").save(folder / "masks" / name)
+            write_png(folder / "images" / name, images[t, c], staging)
+            write_png(folder / "masks" / name, masks[t, c].astype(np.uint8) * 255, staging)
             frames.append(
                 {
                     "file_path": f"images/{name}",
@@ -748,11 +758,9 @@ def write_capture(capture: Capture, folder: str | Path, truth: dict | None = Non
         "lighting": None if capture.lighting is None else capture.lighting.to_dict(),
         "frames": frames,
     }
-    path = folder / _TRANSFORMS
-    path.write_text(json.dumps(meta, indent=1))
-    if truth is not None:
-        _write_truth(truth, folder / _TRUTH)
-    return path
+    if truth_arrays is not None:
+        write_arrays(folder / _TRUTH, staging, **truth_arrays)
+    return write_json(folder / _TRANSFORMS, meta, staging, indent=1)
 
 
 def load_capture(folder: str | Path) -> Capture:
@@ -876,7 +884,8 @@ def load_truth(folder: str | Path) -> dict:
     return out
 
 
-def _write_truth(truth: dict, path: Path) -> None:
+def _encode_truth(truth: dict) -> dict[str, np.ndarray]:
+    """The arrays of ``truth.npz``: each tensor or array as itself, every other value in one JSON string."""
     arrays, other = {}, {}
     for key, value in truth.items():
         if not isinstance(key, str) or key == _JSON_KEY:
@@ -893,7 +902,7 @@ def _write_truth(truth: dict, path: Path) -> None:
         encoded = json.dumps(other)
     except TypeError as error:
         raise ValueError(f"truth values must be tensors, arrays or JSON-serialisable values: {error}") from error
-    np.savez_compressed(path, **arrays, **{_JSON_KEY: np.asarray(encoded)})
+    return {**arrays, _JSON_KEY: np.asarray(encoded)}
 
 
 def _open_image(json_path: Path, relative: str, image_module):

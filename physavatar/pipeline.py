@@ -20,13 +20,20 @@ or all at once (``pipeline``):
     ``appearance.npz`` (albedo, baked texture), ``appearance.json`` (light), ``relit.png`` (§3.3).
 ``animate/``
     ``animation.npz``: the garment under a motion not seen in fitting for every method compared (truth, full,
-    w/o physics = random parameters, LBS); ``animation.mp4``.
+    w/o physics = random parameters, LBS).
 ``evaluate/``
-    ``report.md``, ``report.json`` and ``chamfer.png``/``metrics.png``: the structure of the paper's Table 2.
+    ``report.md``, ``report.json``, ``chamfer.png``/``metrics.png`` and ``comparison.png``: the structure of the
+    paper's Table 2.
+
+:data:`OUTPUTS` lists these paths, so a program can check them before any work. Every stage writes each file
+through the ``staging`` step it is given (:data:`physavatar.result_files.Staging`; the default writes the path
+itself), so a program can have each written whole or not at all. Ctrl-C during :func:`run` raises
+:class:`PipelineInterrupted`, which names the stage it stopped and the stages that finished before it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import math
@@ -64,13 +71,16 @@ from physavatar.estimate import (
 from physavatar.evaluate import geometry_scores, lbs_garment
 from physavatar.garment import procedural_skirt, select_boundary
 from physavatar.motion import MOTIONS, named_motion
+from physavatar.result_files import Staging, save_figure, write_arrays, write_json, write_png, write_text
 from physavatar.track import TrackConfig, track
 
 __all__ = [
     "COARSE_MESH_TRACKING",
+    "OUTPUTS",
     "SMOKE_NOTE",
     "STAGES",
     "PipelineConfig",
+    "PipelineInterrupted",
     "animate",
     "appearance",
     "capture",
@@ -87,6 +97,30 @@ SMOKE_NOTE = (
     "a few frames of tiny images and a handful of iterations and mean nothing; run without --smoke for results."
 )
 STAGES = ("capture", "track", "estimate", "appearance", "animate", "evaluate")
+OUTPUTS: dict[str, tuple[str, ...]] = {
+    "capture": (
+        "capture/",
+        "capture/images/",
+        "capture/masks/",
+        "capture/truth.npz",
+        "capture/transforms.json",
+        "capture/inputs.npz",
+    ),
+    "track": ("track/", "track/tracked.npz", "track/tracking.json"),
+    "estimate": ("estimate/", "estimate/estimate.json", "estimate/estimate.png"),
+    "appearance": ("appearance/", "appearance/appearance.npz", "appearance/appearance.json", "appearance/relit.png"),
+    "animate": ("animate/", "animate/animation.npz"),
+    "evaluate": (
+        "evaluate/",
+        "evaluate/report.json",
+        "evaluate/report.md",
+        "evaluate/chamfer.png",
+        "evaluate/metrics.png",
+        "evaluate/comparison.png",
+    ),
+}
+"""What each stage writes under the experiment folder, in order: folders end with ``/`` (``capture/images/`` and
+``capture/masks/`` hold one PNG per frame and camera, ``t0000_c00.png``)."""
 
 
 COARSE_MESH_TRACKING = TrackConfig(face_subdivisions=2, lambda_normal=0.01, iso_tolerance=0.05)
@@ -178,6 +212,20 @@ class PipelineConfig:
 Progress = Callable[[str, str], None]
 
 
+class PipelineInterrupted(KeyboardInterrupt):
+    """Ctrl-C (``KeyboardInterrupt``) during :func:`run`.
+
+    Attributes:
+        stage: the stage that was running (a name in :data:`STAGES`); the files it finished are whole, the one in
+            progress is as the staging step leaves it.
+        finished: the stages that finished before it, in order.
+    """
+
+    def __init__(self, stage: str, finished: tuple[str, ...]):
+        super().__init__(f"interrupted in the {stage} stage ({len(finished) + 1} of {len(STAGES)})")
+        self.stage, self.finished = stage, finished
+
+
 def _say(progress: Progress | None, stage: str, message: str) -> None:
     if progress is not None:
         progress(stage, message)
@@ -224,8 +272,11 @@ def _forward(config: PipelineConfig, body: Body, garment, boundary: torch.Tensor
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def capture(config: PipelineConfig, out: Path, progress: Progress | None = None) -> Path:
-    """Simulate the truth under the fitting motion and film it; writes ``out/capture``."""
+def capture(
+    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Simulate the truth under the fitting motion and film it; writes ``out/capture``, each file through
+    ``staging``."""
     folder = Path(out) / "capture"
     body, garment, boundary = _scene(config)
     problem, _ = _forward(config, body, garment, boundary, config.fit_motion, config.frames)
@@ -259,9 +310,11 @@ def capture(config: PipelineConfig, out: Path, progress: Progress | None = None)
             "albedo": albedo.numpy(),
             "parameters": dataclasses.asdict(truth),
         },
+        staging=staging,
     )
-    np.savez_compressed(
+    write_arrays(
         folder / "inputs.npz",
+        staging,
         first_vertices=frames[0].numpy(),
         faces=garment.faces.numpy(),
         body_frames=body_frames.numpy(),
@@ -287,8 +340,10 @@ def _inputs(capture_dir: Path) -> dict:
         return {k: torch.from_numpy(data[k]) if data[k].ndim else float(data[k]) for k in data.files}
 
 
-def track_stage(config: PipelineConfig, out: Path, progress: Progress | None = None) -> Path:
-    """Track the garment through ``out/capture``; writes ``out/track``."""
+def track_stage(
+    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Track the garment through ``out/capture``; writes ``out/track``, each file through ``staging``."""
     capture_dir, folder = Path(out) / "capture", Path(out) / "track"
     film = load_capture(capture_dir)
     given = _inputs(capture_dir)
@@ -308,7 +363,7 @@ def track_stage(config: PipelineConfig, out: Path, progress: Progress | None = N
         ),
     )
     folder.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(folder / "tracked.npz", vertices=result.vertices.numpy(), colors=result.colors.numpy())
+    write_arrays(folder / "tracked.npz", staging, vertices=result.vertices.numpy(), colors=result.colors.numpy())
     record = {
         "frames": int(result.vertices.shape[0]),
         "render_loss": result.render_loss.tolist(),
@@ -316,7 +371,7 @@ def track_stage(config: PipelineConfig, out: Path, progress: Progress | None = N
         "mean_vertex_error_m": float(result.vertex_error[1:].mean()) if len(result.vertex_error) > 1 else 0.0,
         "seconds_per_frame": result.frame_time,
     }
-    (folder / "tracking.json").write_text(json.dumps(record, indent=2))
+    write_json(folder / "tracking.json", record, staging)
     return folder
 
 
@@ -333,8 +388,15 @@ def _tracked(out: Path) -> dict:
         return {k: torch.from_numpy(data[k]) for k in data.files}
 
 
-def estimate(config: PipelineConfig, out: Path, progress: Progress | None = None, exact: bool = False) -> Path:
-    """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones); writes ``out/estimate``.
+def estimate(
+    config: PipelineConfig,
+    out: Path,
+    progress: Progress | None = None,
+    exact: bool = False,
+    staging: Staging = contextlib.nullcontext,
+) -> Path:
+    """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones); writes ``out/estimate``,
+    each file through ``staging``.
 
     Both of Algorithm 1 (forward differences + Adam) and the analytic Levenberg–Marquardt run from
     ``config.start``.
@@ -394,13 +456,16 @@ def estimate(config: PipelineConfig, out: Path, progress: Progress | None = None
     report["recovered"] = dataclasses.asdict(best.final)
     report["recovered_by"] = best.method
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "estimate.json").write_text(json.dumps(report, indent=2))
-    _plot_estimation(runs, truth, folder / "estimate.png")
+    write_json(folder / "estimate.json", report, staging)
+    _plot_estimation(runs, truth, folder / "estimate.png", staging)
     return folder
 
 
-def appearance(config: PipelineConfig, out: Path, progress: Progress | None = None) -> Path:
-    """Recover the garment's albedo and the light from the tracked meshes (§3.3); writes ``out/appearance``."""
+def appearance(
+    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Recover the garment's albedo and the light from the tracked meshes (§3.3); writes ``out/appearance``, each
+    file through ``staging``."""
     capture_dir, folder = Path(out) / "capture", Path(out) / "appearance"
     film = load_capture(capture_dir)
     given = _inputs(capture_dir)
@@ -418,8 +483,9 @@ def appearance(config: PipelineConfig, out: Path, progress: Progress | None = No
     )
     truth_albedo = torch.as_tensor(load_truth(capture_dir)["albedo"])
     folder.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
+    write_arrays(
         folder / "appearance.npz",
+        staging,
         albedo=result.albedo.numpy(),
         baked=result.initial_albedo.numpy(),
         observed=result.observed.numpy(),
@@ -431,7 +497,7 @@ def appearance(config: PipelineConfig, out: Path, progress: Progress | None = No
         "loss_history": result.loss_history,
         "pixels": result.pixel_count,
     }
-    (folder / "appearance.json").write_text(json.dumps(record, indent=2))
+    write_json(folder / "appearance.json", record, staging)
     new_light = Lighting(ambient=(0.35, 0.35, 0.4), sun=(0.8, 0.7, 0.55), sun_direction=(-0.8, 0.6, 0.3))
     images = relight(
         tracked["vertices"][-1],
@@ -444,15 +510,18 @@ def appearance(config: PipelineConfig, out: Path, progress: Progress | None = No
         BODY_COLOR,
         ao_samples=config.ao_samples,
     )
-    _write_strip(images[0], folder / "relit.png")
+    _write_strip(images[0], folder / "relit.png", staging)
     _say(
         progress, "appearance", f"albedo error {record['albedo_error']:.4f} (baked {record['baked_albedo_error']:.4f})"
     )
     return folder
 
 
-def animate(config: PipelineConfig, out: Path, progress: Progress | None = None) -> Path:
-    """Simulate the garment under the unseen motion with each method's parameters; writes ``out/animate``."""
+def animate(
+    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Simulate the garment under the unseen motion with each method's parameters; writes ``out/animate`` through
+    ``staging``."""
     capture_dir, folder = Path(out) / "capture", Path(out) / "animate"
     estimate_path = Path(out) / "estimate" / "estimate.json"
     if not estimate_path.is_file():
@@ -475,8 +544,9 @@ def animate(config: PipelineConfig, out: Path, progress: Progress | None = None)
         body, garment.vertices, clip.rotations[: config.eval_frames], clip.root_translation[: config.eval_frames]
     )
     folder.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
+    write_arrays(
         folder / "animation.npz",
+        staging,
         **{k: v.numpy() for k, v in sequences.items()},
         body_frames=problem.body_frames.numpy(),
         faces=garment.faces.numpy(),
@@ -486,8 +556,11 @@ def animate(config: PipelineConfig, out: Path, progress: Progress | None = None)
     return folder
 
 
-def evaluate(config: PipelineConfig, out: Path, progress: Progress | None = None) -> Path:
-    """Table 2 on the unseen motion: geometry and appearance of each method against the truth."""
+def evaluate(
+    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+) -> Path:
+    """Table 2 on the unseen motion: geometry and appearance of each method against the truth; writes
+    ``out/evaluate``, each file through ``staging``."""
     capture_dir, folder = Path(out) / "capture", Path(out) / "evaluate"
     path = Path(out) / "animate" / "animation.npz"
     if not path.is_file():
@@ -545,23 +618,37 @@ def evaluate(config: PipelineConfig, out: Path, progress: Progress | None = None
             "ssim": float(ssim(images.flatten(0, 1), reference.flatten(0, 1))),
         }
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "report.json").write_text(json.dumps(report, indent=2))
-    (folder / "report.md").write_text(_markdown(report, Path(out)))
-    _plot_report(report, folder)
+    write_json(folder / "report.json", report, staging)
+    write_text(folder / "report.md", _markdown(report, Path(out)), staging)
+    _plot_report(report, folder, staging)
     _write_strip(
-        torch.cat([renders[k][-1][:1] for k in ("truth", "lbs", "without_physics", "full")]), folder / "comparison.png"
+        torch.cat([renders[k][-1][:1] for k in ("truth", "lbs", "without_physics", "full")]),
+        folder / "comparison.png",
+        staging,
     )
     return folder
 
 
-def run(config: PipelineConfig, out: Path, progress: Progress | None = stderr_progress) -> Path:
-    """Every stage in order; returns the report's path."""
+def run(
+    config: PipelineConfig,
+    out: Path,
+    progress: Progress | None = stderr_progress,
+    staging: Staging = contextlib.nullcontext,
+) -> Path:
+    """Every stage in order, each file written through ``staging``; returns the report's path.
+
+    Raises:
+        PipelineInterrupted: on Ctrl-C, naming the stage it stopped and those that finished.
+    """
     out = Path(out)
     stages = (capture, track_stage, estimate, appearance, animate, evaluate)
     for index, (name, stage) in enumerate(zip(STAGES, stages, strict=True)):
         start = time.perf_counter()
         _say(progress, name, f"stage {index + 1}/{len(stages)}")
-        stage(config, out, progress)
+        try:
+            stage(config, out, progress, staging=staging)
+        except KeyboardInterrupt as stop:
+            raise PipelineInterrupted(name, STAGES[:index]) from stop
         _say(progress, name, f"done in {time.perf_counter() - start:.1f} s")
     return out / "evaluate" / "report.md"
 
@@ -623,7 +710,7 @@ def _markdown(report: dict, out: Path) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot_report(report: dict, folder: Path) -> None:
+def _plot_report(report: dict, folder: Path, staging: Staging) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -640,8 +727,10 @@ def _plot_report(report: dict, folder: Path) -> None:
     ax.legend()
     ax.set_title(f"garment geometry on the unseen motion '{report['motion']}'")
     fig.tight_layout()
-    fig.savefig(folder / "chamfer.png", dpi=120)
-    plt.close(fig)
+    try:
+        save_figure(fig, folder / "chamfer.png", staging)
+    finally:
+        plt.close(fig)
 
     labels = [e["label"] for e in report["methods"].values()]
     fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
@@ -654,11 +743,13 @@ def _plot_report(report: dict, folder: Path) -> None:
         ax.set_xticks(range(len(labels)), labels, rotation=20, ha="right", fontsize=8)
         ax.set_title(title)
     fig.tight_layout()
-    fig.savefig(folder / "metrics.png", dpi=120)
-    plt.close(fig)
+    try:
+        save_figure(fig, folder / "metrics.png", staging)
+    finally:
+        plt.close(fig)
 
 
-def _plot_estimation(runs: dict, truth: FabricParameters, path: Path) -> None:
+def _plot_estimation(runs: dict, truth: FabricParameters, path: Path, staging: Staging) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -677,13 +768,13 @@ def _plot_estimation(runs: dict, truth: FabricParameters, path: Path) -> None:
     axes[2].set_yscale("log")
     axes[0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    try:
+        save_figure(fig, path, staging)
+    finally:
+        plt.close(fig)
 
 
-def _write_strip(images: torch.Tensor, path: Path) -> None:
-    """Views ``[N, H, W, 3]`` side by side as one PNG."""
-    import imageio.v2 as imageio
-
+def _write_strip(images: torch.Tensor, path: Path, staging: Staging) -> None:
+    """Views ``[N, H, W, 3]`` side by side as one PNG, written through ``staging``."""
     strip = torch.cat(list(images), dim=1).clamp(0, 1)
-    imageio.imwrite(path, (strip * 255).round().to(torch.uint8).numpy())
+    write_png(path, (strip * 255).round().to(torch.uint8).numpy(), staging)

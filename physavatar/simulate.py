@@ -7,10 +7,11 @@ following the LBS of their nearest body points (Appendix A.3.2).
 
 Writers: one NPZ with both sequences and faces, optional per-frame OBJ/PLY meshes, an MP4 of the dressed
 mannequin from an orbiting camera (ray cast by :func:`kernels.raycast.shade`, with the shadow on a ground plane)
-and a JSON of per-step statistics. Each writes every file through a ``staging`` step passed in: ``staging(path)`` is
-a context manager that yields the file to write for ``path`` and puts it at ``path`` once its block ends cleanly.
-The default writes ``path`` itself; a program passes one that writes a temporary file and moves it into place
-(``pienerf.output_files.atomic_path``), so that an interrupted write leaves no half-written file.
+and a JSON of per-step statistics. Each writes every file through a ``staging`` step passed in
+(:data:`physavatar.result_files.Staging`): ``staging(path)`` is a context manager that yields the file to write for
+``path`` and puts it at ``path`` once its block ends cleanly. The default writes ``path`` itself; a program passes one
+that writes a temporary file and moves it into place (``pienerf.output_files.atomic_path``), so that an interrupted
+write leaves no half-written file.
 
 Ctrl-C during :func:`simulate` raises :class:`SimulationInterrupted`, a ``KeyboardInterrupt`` that carries the
 frames finished so far.
@@ -21,7 +22,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import importlib.util
-import json
 import math
 import sys
 import time
@@ -40,6 +40,7 @@ from physavatar.cloth import ClothConfig, SolverCloth, StepStats
 from physavatar.drive import BodyDriver
 from physavatar.garment import Garment, select_boundary
 from physavatar.motion import Motion
+from physavatar.result_files import Staging, write_arrays, write_json
 
 __all__ = [
     "SimulationInterrupted",
@@ -58,10 +59,6 @@ GARMENT_COLOR = (0.80, 0.22, 0.20)
 BODY_COLOR = (0.78, 0.74, 0.68)
 GROUND_COLOR = (0.92, 0.92, 0.90)
 SKY_COLOR = (1.0, 1.0, 1.0)
-
-Staging = Callable[[Path], contextlib.AbstractContextManager[Path]]
-"""``staging(path)``: a context manager yielding the file to write for ``path``, in place at ``path`` after a clean
-exit of its block (see the module docstring)."""
 
 
 @dataclass
@@ -191,18 +188,16 @@ def simulate(
 def write_npz(result: SimulationResult, path: str | Path, staging: Staging = contextlib.nullcontext) -> Path:
     """One NPZ with ``garment_frames [T, V, 3]``, ``body_frames [T, B, 3]`` (m), both face arrays,
     ``boundary_index`` and ``fps``, at ``path`` exactly (no suffix added), written through ``staging``."""
-    path = Path(path)
-    with staging(path) as target, open(target, "wb") as file:
-        np.savez_compressed(
-            file,
-            garment_frames=result.garment_frames.numpy(),
-            body_frames=result.body_frames.numpy(),
-            garment_faces=result.garment_faces.numpy(),
-            body_faces=result.body_faces.numpy(),
-            boundary_index=result.boundary_index.numpy(),
-            fps=np.float64(result.fps),
-        )
-    return path
+    return write_arrays(
+        path,
+        staging,
+        garment_frames=result.garment_frames.numpy(),
+        body_frames=result.body_frames.numpy(),
+        garment_faces=result.garment_faces.numpy(),
+        body_faces=result.body_faces.numpy(),
+        boundary_index=result.boundary_index.numpy(),
+        fps=np.float64(result.fps),
+    )
 
 
 def write_meshes(
@@ -252,10 +247,7 @@ def write_stats_json(result: SimulationResult, path: str | Path, staging: Stagin
     }
     if math.isinf(summary["min_distance_body_m"]):
         summary["min_distance_body_m"] = None
-    path = Path(path)
-    with staging(path) as target, open(target, "w") as file:
-        json.dump({"summary": summary, "steps": steps}, file, indent=1)
-    return path
+    return write_json(path, {"summary": summary, "steps": steps}, staging, indent=1)
 
 
 def require_video_encoder() -> None:

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+import physavatar.result_files as result_files
 import physavatar.simulate as simulate_module
 from apps import avatar
 from physavatar.cloth import SolverCloth, StepStats
@@ -59,7 +60,7 @@ def test_npz_writer_failing_mid_write_keeps_the_earlier_file(monkeypatch, tmp_pa
         file.write(b"PK\x03\x04 the start of an archive")
         raise _disk_full()
 
-    monkeypatch.setattr(simulate_module.np, "savez_compressed", savez_then_fail)
+    monkeypatch.setattr(result_files.np, "savez_compressed", savez_then_fail)
     with pytest.raises(OSError, match="No space left"):
         write_npz(_result(), target, staging=atomic_path)
     assert target.read_bytes() == EARLIER and _leftovers(tmp_path) == []
@@ -73,7 +74,7 @@ def test_stats_writer_failing_mid_write_keeps_the_earlier_file(monkeypatch, tmp_
         file.write('{"summary": {"frames": ')
         raise _disk_full()
 
-    monkeypatch.setattr(simulate_module.json, "dump", dump_then_fail)
+    monkeypatch.setattr(result_files.json, "dump", dump_then_fail)
     with pytest.raises(OSError, match="No space left"):
         write_stats_json(_result(), target, staging=atomic_path)
     assert target.read_bytes() == EARLIER and _leftovers(tmp_path) == []
@@ -182,7 +183,7 @@ def test_a_full_disk_while_writing_exits_1_with_one_clear_line(device, monkeypat
     def disk_full(value, file, **options):
         raise _disk_full()
 
-    monkeypatch.setattr(simulate_module.json, "dump", disk_full)
+    monkeypatch.setattr(result_files.json, "dump", disk_full)
     assert avatar.main(["simulate", "--smoke", "--out", str(out), "--device", device]) == 1
     lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error:")]
     assert len(lines) == 1 and "No space left on device" in lines[0] and f"kept {out}/sequence.npz" in lines[0]
