@@ -68,7 +68,8 @@ import scipy.sparse
 import scipy.sparse.linalg
 import torch
 
-from kernels import assembly, backend, cloth, cudss
+from kernels import assembly, backend, ccd, cudss, element_terms, ipc_barrier, shell
+from kernels import contact as kernels_contact
 from kernels import friction as kernels_friction
 from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
 from kernels.raycast import MeshBVH
@@ -128,7 +129,7 @@ class ClothConfig:
             to 1e-9 m: clamp converges, abs does not within 30 iterations. Barrier Hessians are always clamped.
         membrane_filter: how ``elastic_projection`` is applied to the membrane: ``"eigen"`` to the eigenvalues of
             each 9×9 Hessian (a batched eigensolver), ``"stress"`` in the kernel, in closed form, to the stress in
-            the Hessian's only indefinite term (``stress_filter`` of :func:`kernels.cloth.membrane_energy`). The
+            the Hessian's only indefinite term (``stress_filter`` of :func:`kernels.shell.membrane_energy`). The
             stress filter saves the eigensolver but converges more slowly: over the first 14 frames of the walk
             above 118 Newton iterations against 113; the 8×8 sheet dropped on a sphere of the tests, 8 frames: 137
             against 119. Its cheaper iterations then make a frame take about as long (``docs/benchmarks.md``); the
@@ -279,21 +280,21 @@ class StepStats:
 
 
 class ClothEnergies(NamedTuple):
-    """Per-element energy evaluators (signatures of :func:`kernels.cloth.membrane_energy`, ``bending_energy``,
+    """Per-element energy evaluators (signatures of :func:`kernels.shell.membrane_energy`, ``bending_energy``,
     ``contact_energy`` and their energy-only ``*_value`` twins, which the line search calls); the benchmark swaps
     in the autograd references."""
 
-    membrane: Callable = cloth.membrane_energy
-    bending: Callable = cloth.bending_energy
-    contact: Callable = cloth.contact_energy
-    membrane_value: Callable = cloth.membrane_energy_value
-    bending_value: Callable = cloth.bending_energy_value
-    contact_value: Callable = cloth.contact_energy_value
+    membrane: Callable = shell.membrane_energy
+    bending: Callable = shell.bending_energy
+    contact: Callable = kernels_contact.contact_energy
+    membrane_value: Callable = shell.membrane_energy_value
+    bending_value: Callable = shell.bending_energy_value
+    contact_value: Callable = kernels_contact.contact_energy_value
 
 
 class _Pairs(NamedTuple):
     """Contact candidates: ``pt [P, 4]``, ``ee [Q, 4]`` int32, how many of each lead (garment–body first), and the
-    edge pairs' mollifier thresholds ``ε_x [Q]`` (:func:`kernels.cloth.edge_edge_mollifier_threshold`, found with
+    edge pairs' mollifier thresholds ``ε_x [Q]`` (:func:`kernels.ipc_barrier.edge_edge_mollifier_threshold`, found with
     the candidates and carried along with them)."""
 
     pt: torch.Tensor
@@ -347,7 +348,7 @@ def bending_stiffness(config: ClothConfig) -> float:
 
     ``κ_b`` multiplies the base modulus ``E₀`` directly, independently of the membrane's ``κ_s``, so that
     ``(ρ, κ_s, κ_b)`` enter mass, membrane and bending separately. The hinge energy is ``k w̄ (θ − θ̄)²``
-    (:func:`kernels.cloth.bending_energy`); on a square grid bent about a grid axis its continuum limit has
+    (:func:`kernels.shell.bending_energy`); on a square grid bent about a grid axis its continuum limit has
     bending rigidity ``6 k`` per unit width (``4.8 k`` for a free strip).
     """
     e, h, nu = config.base_young, config.thickness, config.poisson
@@ -364,7 +365,7 @@ def barrier_stiffness(config: ClothConfig, mean_mass: float, dt: float) -> float
         return config.barrier_stiffness
     dhat2 = config.contact_distance**2
     d = torch.tensor([1e-16], dtype=F64, device=backend.torch_device())
-    curvature = float(cloth.barrier(d, dhat2)[2][0])
+    curvature = float(ipc_barrier.barrier(d, dhat2)[2][0])
     return 3.0e11 * mean_mass / (dt * dt * 4.0e-16 * curvature)
 
 
@@ -448,12 +449,13 @@ class SolverCloth:
         faces: ``[F, 3]`` garment triangles, consistently oriented, manifold.
         config: material and solver settings.
         body_faces: ``[Fb, 3]`` body collider triangles indexing ``ClothControl.body_start``; may be empty.
-        energies: element evaluators (default: the Warp kernels of :mod:`kernels.cloth`; with others the Newton loop
-            runs on CUDA as plain calls, not as CUDA graphs, which other evaluators may not allow).
+        energies: element evaluators (default: the Warp kernels of :mod:`kernels.shell` and :mod:`kernels.contact`;
+            with others the Newton loop runs on CUDA as plain calls, not as CUDA graphs, which other evaluators may
+            not allow).
 
     Raises:
         ValueError: malformed meshes; a non-manifold or inconsistently oriented garment (from
-            :func:`kernels.cloth.hinges_from_faces`).
+            :func:`kernels.shell.hinges_from_faces`).
     """
 
     def __init__(
@@ -478,10 +480,10 @@ class SolverCloth:
         self.body_vertex_count = int(body_faces.max()) + 1 if body_faces.numel() else 0
         self.x_rest = vertices.to(device, F64).contiguous()
         self.faces = faces.to(device, torch.int32).contiguous()
-        self.hinges, _ = cloth.hinges_from_faces(self.faces)
-        self.rest = cloth.rest_state(self.x_rest, self.faces, self.hinges)
+        self.hinges, _ = shell.hinges_from_faces(self.faces)
+        self.rest = shell.rest_state(self.x_rest, self.faces, self.hinges)
         self.mass = lumped_masses(self.x_rest, self.faces, config.density * config.thickness)
-        mu, lam = cloth.plane_stress_lame(config.young, config.poisson, config.thickness)
+        mu, lam = shell.plane_stress_lame(config.young, config.poisson, config.thickness)
         self.membrane_mu, self.membrane_lambda = mu, lam
         self.k_bend = bending_stiffness(config)
         self.gravity = torch.tensor(config.gravity, dtype=F64, device=device)
@@ -855,8 +857,8 @@ class SolverCloth:
         """The masks of :meth:`_swept` over ``cover``'s point–triangle and edge–edge candidates (no read)."""
         dhat = self.config.contact_distance
         pairs = cover.pairs
-        pt_keep = cloth.pair_boxes_overlap(X, p, pairs.pt, 1, dhat)
-        return pt_keep, cloth.pair_boxes_overlap(X, p, pairs.ee, 2, dhat, parallel=PARALLEL_SIN2)
+        pt_keep = kernels_contact.pair_boxes_overlap(X, p, pairs.pt, 1, dhat)
+        return pt_keep, kernels_contact.pair_boxes_overlap(X, p, pairs.ee, 2, dhat, parallel=PARALLEL_SIN2)
 
     def _box_pairs(self, lo: torch.Tensor, hi: torch.Tensor, ctx: _StepContext) -> _Pairs:
         """Pairs whose primitives' boxes overlap, given each vertex's box ``[lo, hi]`` (the query side grown by
@@ -883,14 +885,14 @@ class SolverCloth:
         )
         pt_body, ee_body = pt_vb.shape[0] + pt_bv.shape[0], ee_b.shape[0]
         ee = torch.cat([ee_b, ee_self])
-        eps = cloth.edge_edge_mollifier_threshold(ctx.x_rest, ee)
+        eps = ipc_barrier.edge_edge_mollifier_threshold(ctx.x_rest, ee)
         return _Pairs(torch.cat([pt_vb, pt_bv, pt_self]), ee, pt_body, ee_body, eps)
 
     def _near(self, X: torch.Tensor, pairs: _Pairs, ctx: _StepContext) -> _Pairs:
         """The candidates whose boxes at ``X`` lie within ``d̂`` (a superset of the active barrier pairs)."""
         dhat = self.config.contact_distance
-        pt_keep = cloth.pair_boxes_overlap(X, None, pairs.pt, 1, dhat)
-        return _keep(pairs, pt_keep, cloth.pair_boxes_overlap(X, None, pairs.ee, 2, dhat))
+        pt_keep = kernels_contact.pair_boxes_overlap(X, None, pairs.pt, 1, dhat)
+        return _keep(pairs, pt_keep, kernels_contact.pair_boxes_overlap(X, None, pairs.ee, 2, dhat))
 
     def _ccd_bound(self, X: torch.Tensor, p: torch.Tensor, pairs: _Pairs) -> torch.Tensor:
         """Largest step fraction in ``[0, 1]`` that additive CCD certifies intersection-free (Li et al. 2021), 0-d on
@@ -898,9 +900,9 @@ class SolverCloth:
         eta = self.config.ccd_eta
         times = [X.new_ones(1)]
         if pairs.pt.shape[0]:
-            times.append(cloth.point_triangle_ccd(X, p, pairs.pt, eta=eta))
+            times.append(ccd.point_triangle_ccd(X, p, pairs.pt, eta=eta))
         if pairs.ee.shape[0]:
-            times.append(cloth.edge_edge_ccd(X, p, pairs.ee, eta=eta))
+            times.append(ccd.edge_edge_ccd(X, p, pairs.ee, eta=eta))
         return torch.cat(times).min()
 
     def _potential(
@@ -988,7 +990,7 @@ class SolverCloth:
                 X - ctx.x_start, ctx.friction, cfg.friction_velocity * ctx.dt, True
             )
             index = ctx.friction.index.to(torch.int32)
-            add(index, cloth.ElementTerms(f_energy, f_grad, f_hess), "friction", "none")  # PSD already
+            add(index, element_terms.ElementTerms(f_energy, f_grad, f_hess), "friction", "none")  # PSD already
         # the element terms scaled once, as :meth:`_energy` sums them
         energy = energy + dt2 * torch.cat(term_energies).sum()
         grad = term_grad.mul_(dt2)
@@ -1005,8 +1007,8 @@ class SolverCloth:
         :class:`_NewtonLoop`) filling the rest, and then the ``[2]`` counts of active pairs, all without a read from
         the device; else exactly the rows selected (a read)."""
         dhat2 = self.config.contact_distance**2
-        d_pt = cloth.point_triangle_distance_value(X, candidates.pt)
-        d_ee = cloth.edge_edge_distance_value(X, candidates.ee)
+        d_pt = ipc_barrier.point_triangle_distance_value(X, candidates.pt)
+        d_ee = ipc_barrier.edge_edge_distance_value(X, candidates.ee)
         if capacity is not None:
             masks = (d_pt < dhat2, d_ee < dhat2)
             rows = [_compact(mask, size) for mask, size in zip(masks, capacity, strict=True)]
@@ -1088,8 +1090,8 @@ class SolverCloth:
         """Smallest garment–body and garment–garment distances among the pairs (those ``masks`` select, when given),
         m (inf where there are none), and the number of pairs within ``d̂``; one read from the device."""
         dhat2 = self.config.contact_distance**2
-        d_pt = cloth.point_triangle_distance_value(X, pairs.pt)
-        d_ee = cloth.edge_edge_distance_value(X, pairs.ee)
+        d_pt = ipc_barrier.point_triangle_distance_value(X, pairs.pt)
+        d_ee = ipc_barrier.edge_edge_distance_value(X, pairs.ee)
         if masks is not None:
             d_pt, d_ee = (torch.where(mask, d, math.inf) for mask, d in zip(masks, (d_pt, d_ee), strict=True))
         inf = X.new_full((1,), math.inf)
@@ -1219,8 +1221,8 @@ class _NewtonMatrices:
     pattern grows at most once a step and outlives the step: it restarts from the garment's elements only when the
     free vertices change or when contacts have doubled it.
 
-    Each element kind's Hessians are PSD-filtered by one batched eigensolver call (:func:`kernels.cloth.project_psd`),
-    then scattered by one Warp launch (:mod:`kernels.assembly`).
+    Each element kind's Hessians are PSD-filtered by one batched eigensolver call
+    (:func:`kernels.element_terms.project_psd`), then scattered by one Warp launch (:mod:`kernels.assembly`).
     """
 
     def __init__(self, elastic: list[torch.Tensor]):
@@ -1677,7 +1679,7 @@ def _filtered(elements: list[_Element]) -> list[_Element]:
         if not element.index.shape[0]:
             continue
         if element.projection != "none":
-            hess = cloth.project_psd(element.hess, absolute=element.projection == "abs")
+            hess = element_terms.project_psd(element.hess, absolute=element.projection == "abs")
             element = element._replace(hess=hess, projection="none")
         out.append(element)
     return out
