@@ -5,17 +5,9 @@ import torch
 
 from kernels import backend, cudss
 from kernels.reference.assembly import newton_matrix
-from physavatar.cloth import (
-    PHASES,
-    ClothConfig,
-    ClothControl,
-    ClothState,
-    SolverCloth,
-    _Element,
-    _NewtonLoop,
-    _NewtonMatrices,
-    bending_stiffness,
-)
+from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
+from physavatar.cloth.newton_loop import NewtonLoop
+from physavatar.cloth.newton_system import NewtonElement, NewtonMatrices
 from physavatar.shapes import grid_sheet, icosphere
 
 F64 = torch.float64
@@ -181,7 +173,7 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
     lifted = body + torch.tensor([0.0, 4e-3, 0.0], dtype=F64, device=body.device)
     rising = ClothControl(body, lifted, control.boundary_index, control.boundary_target)
     X, target, ctx = solver._context(state, rising, 0.04)
-    cover = solver._cover(X, target, ctx, 5e-3)
+    cover = solver.contact.cover(X, target, ctx.kinematic, ctx.x_rest, 5e-3)
     generator = torch.Generator().manual_seed(0)
 
     def rows(index: torch.Tensor) -> set:
@@ -190,10 +182,11 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
     for scale in (1e-3, 4e-3, 3e-2):
         p = (2.0 * torch.rand(X.shape, generator=generator, dtype=F64) - 1.0).to(X.device) * scale
         p[solver.vertex_count :] = target[solver.vertex_count :] - X[solver.vertex_count :]
-        assert solver._covers(cover, X, p) == (scale < 5e-3)
+        assert solver.contact.covers(cover, X, p) == (scale < 5e-3)
         if scale > 5e-3:
             continue
-        fresh, reused = solver._broad_phase(X, p, ctx), solver._swept(X, p, cover)
+        fresh = solver.contact.broad_phase(X, p, ctx.kinematic, ctx.x_rest)
+        reused = solver.contact.swept(X, p, cover)
         assert fresh.pt.shape[0] > 0 and fresh.pt_body > 0  # the sheet lies on the sphere
         assert rows(reused.pt) == rows(fresh.pt) and rows(reused.ee) == rows(fresh.ee)
         assert (reused.pt_body, reused.ee_body) == (fresh.pt_body, fresh.ee_body)
@@ -233,13 +226,13 @@ def test_linear_solvers_take_the_same_steps(device):
     # one Newton system of the sheet in contact, solved by each
     solver = solvers["direct"]
     X, target, ctx = solver._context(finals["direct"], control, 0.04)
-    pairs = solver._broad_phase(X, torch.zeros_like(X), ctx)
-    _, grad, elements = solver._potential(X, solver._near(X, pairs, ctx), ctx)
+    pairs = solver.contact.broad_phase(X, torch.zeros_like(X), ctx.kinematic, ctx.x_rest)
+    _, grad, elements = solver.potential.evaluate(X, solver.contact.near(X, pairs), ctx)
     assert any(element.reach is not None and element.index.shape[0] for element in elements)  # contacts
     matrix, rhs = solver._assemble(elements, grad, torch.zeros_like(X), ctx)
-    reference = solver._solve(matrix, rhs.reshape(-1))
+    reference = solver.linear.solve(matrix, rhs.reshape(-1))
     for name in names:
-        p = solvers[name]._solve(matrix, rhs.reshape(-1))
+        p = solvers[name].linear.solve(matrix, rhs.reshape(-1))
         torch.testing.assert_close(p, reference, rtol=0.0, atol=1e-9 * float(reference.abs().max()))
 
     tol_step = solver.config.newton_tolerance * 0.04
@@ -273,7 +266,8 @@ def test_fixed_shape_newton_loop_takes_the_exact_lists_steps(device):
     runs = {}
     for static in (False, True):
         solver, control, _, _ = _sheet_over_sphere(10)
-        loop = solver._loop = _NewtonLoop(solver, static=static)
+        parts = (solver.potential, solver.contact, solver.matrices, solver.linear)
+        loop = solver.loop = NewtonLoop(*parts, solver.config.newton_tolerance, static=static)
         loop.capacity.update(active_pt=2, active_ee=2, swept_pt=2, swept_ee=2)
         state = solver.initial_state()
         trace = []
@@ -357,10 +351,10 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
         dof[free] = torch.arange(len(free), dtype=torch.int32)
         return dof.to(torch_device)
 
-    membrane = _Element(faces, spd(faces.shape[0], 9), 0.5, "abs", None)
+    membrane = NewtonElement(faces, spd(faces.shape[0], 9), 0.5, "abs", None)
     far = torch.tensor([[0, 8, 2, 6]], dtype=torch.int32, device=torch_device)  # corners no triangle joins
-    contact = _Element(far, spd(1, 12), 0.5, "clamp", far)
-    matrices = _NewtonMatrices([faces])
+    contact = NewtonElement(far, spd(1, 12), 0.5, "clamp", far)
+    matrices = NewtonMatrices([faces])
     p_kin = torch.randn(9, 3, generator=g, dtype=F64).to(torch_device)
     solver = cudss.SparseSPDSolver(torch_device) if device == "cuda" and cudss.available() else None
     patterns = []
@@ -391,7 +385,7 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
 
     # the Newton loop scatters without reading: the blocks outside the pattern are counted on the device and bounded
     # on the diagonal (the matrix exceeds the exact one by a PSD term), and the pattern grows at the next step
-    fresh, dof, elements = _NewtonMatrices([faces]), dofs([4]), [membrane, contact]
+    fresh, dof, elements = NewtonMatrices([faces]), dofs([4]), [membrane, contact]
     rhs = torch.randn(8, 3, generator=g, dtype=F64).to(torch_device)
     push = p_kin * (dof < 0)[:, None]
     active = fresh.prepare(elements, dof, 8)
