@@ -232,9 +232,14 @@ def declare_float64_overloads(namespace: dict[str, Any]) -> None:
     once. Other dtypes still work, at the cost of a rebuild.
 
     Args:
-        namespace: a kernel module's ``globals()``; its generic ``wp.Kernel`` values get the overload.
+        namespace: a kernel module's ``globals()``; the generic ``wp.Kernel`` values it defines get the overload.
     """
-    for kernel in [value for value in namespace.values() if isinstance(value, wp.Kernel) and value.is_generic]:
+    name = namespace["__name__"]
+    for kernel in [
+        value
+        for value in namespace.values()
+        if isinstance(value, wp.Kernel) and value.is_generic and value.func.__module__ == name
+    ]:
         types = {}
         for arg in kernel.adj.args:
             if arg.type is Any:

@@ -1,4 +1,5 @@
-"""Cloth energies, IPC distances and additive CCD against autograd references, finite differences and ipctk."""
+"""Garment kernels (kernels.shell, .ipc_barrier, .contact, .ccd, .element_terms) against autograd references, finite
+differences and ipctk: one module, as their oracle kernels.reference.cloth is one."""
 
 import math
 
