@@ -18,8 +18,8 @@ Paper parameters and their mapping. PhysAvatar estimates ``(ρ, κ_s, κ_b)`` wi
   ``κ_s``, and each hinge stores ``k w̄ (θ − θ̄)²`` with ``w̄ = 3‖ē‖²/Ā``. Its continuum limit depends on the mesh:
   on a square grid with one diagonal direction it is ``3k [(c_x − c_xy)² + (c_y − c_xy)² + 4 c_xy²]`` per unit
   area (curvatures ``c``), so cylindrical bending has rigidity ``6k`` (3× the plate's
-  ``D = κ_b E₀ h³/(12(1 − ν²))``) and a free narrow strip ``4.8 k`` per unit width (tests/physavatar/test_cloth.py
-  derives both).
+  ``D = κ_b E₀ h³/(12(1 − ν²))``) and a free narrow strip ``4.8 k`` per unit width
+  (tests/physavatar/cloth/test_solver.py derives both).
 
 So ``ρ`` scales the inertia, ``κ_s`` the membrane and ``κ_b`` the bending alone. Scaling all three by ``s`` scales
 the whole incremental potential by ``s`` (the barrier stiffness follows the mean mass, friction the barrier force,
