@@ -20,7 +20,7 @@ pattern now and assemble again.
 The values array holds every stored entry of both triangles in scalar CSR order (``crow``/``col`` of the pattern),
 which is what cuDSS, SciPy and ``torch.sparse_csr_tensor`` take.
 
-PSD filtering stays with the caller (:func:`kernels.cloth.project_psd`, a batched eigen-decomposition). A
+PSD filtering stays with the caller (:func:`kernels.element_terms.project_psd`, a batched eigen-decomposition). A
 thread-per-element cyclic Jacobi filter inside this kernel was measured and dropped: its rotations form one long
 dependent chain per thread, through memory, slower than cuSOLVER's batched eigensolvers on CUDA and than LAPACK on
 the CPU (``docs/benchmarks.md``).

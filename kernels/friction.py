@@ -21,13 +21,13 @@ mostly launch overhead; here it is one launch on torch's current stream (:mod:`k
 
 The lagged data themselves come from :func:`lagged_contacts`, once per time step, at the positions ``x^t`` where
 the step starts: from the candidate point-triangle and edge-edge pairs it keeps those with squared distance
-``d < d̂²`` (closest-feature types exactly as :func:`kernels.cloth.point_triangle_distance` and
-:func:`kernels.cloth.edge_edge_distance` classify them, from the same Warp functions) and returns, per contact, its
-four vertices, the weights ``w_ki`` with ``Σ_i w_ki x_i`` the gap between the closest points (m), the projector
-``P_k`` of the unit gap ``n_k`` and ``μλ_k = μ (−κ m b′(d) 2√d)`` (N; ``b′`` the barrier derivative in m², ``m`` the
-edge-edge mollifier, 1 for point-triangle pairs). One launch per pair kind and one compaction (one host read of
-the active pairs); the reference is :func:`kernels.reference.friction.lagged_contacts`, the masked torch code with
-one or more launches per closest-feature type.
+``d < d̂²`` (closest-feature types exactly as :func:`kernels.ipc_barrier.point_triangle_distance` and
+:func:`kernels.ipc_barrier.edge_edge_distance` classify them, from the same Warp functions) and returns, per
+contact, its four vertices, the weights ``w_ki`` with ``Σ_i w_ki x_i`` the gap between the closest points (m), the
+projector ``P_k`` of the unit gap ``n_k`` and ``μλ_k = μ (−κ m b′(d) 2√d)`` (N; ``b′`` the barrier derivative in
+m², ``m`` the edge-edge mollifier, 1 for point-triangle pairs). One launch per pair kind and one compaction (one
+host read of the active pairs); the reference is :func:`kernels.reference.friction.lagged_contacts`, the masked
+torch code with one or more launches per closest-feature type.
 
 Warp, not Taichi: the simulator around it is Warp and torch, and the kernels are per-contact maps with no reduction.
 They beat the torch versions on both devices (``docs/benchmarks.md``).
@@ -39,20 +39,18 @@ import torch
 import warp as wp
 
 from kernels import backend
-from kernels.cloth import (
-    _barrier,
-    _check_index,
-    _check_positions,
-    _check_values,
-    _corner,
-    _edge_edge_type,
-    _edge_edge_value,
-    _line_line_gram,
-    _mollifier,
-    _parallel_tol,
-    _pick,
-    _point_triangle_type,
-    _point_triangle_value,
+from kernels.element_terms import check_index, check_positions, check_values
+from kernels.ipc_barrier import (
+    edge_edge_mollifier,
+    edge_edge_type,
+    edge_edge_value,
+    line_line_gram,
+    log_barrier,
+    pair_vertex,
+    parallel_tolerance,
+    point_triangle_type,
+    point_triangle_value,
+    triangle_corner,
 )
 
 # Every derivative here is written out in closed form; Warp's adjoint code would only add compile time.
@@ -206,7 +204,7 @@ def _point_triangle_weights(p: wp.vec3d, t0: wp.vec3d, t1: wp.vec3d, t2: wp.vec3
     elif kind <= 5:
         a = kind - 3
         b = (a + 1) % 3
-        s = _segment_parameter(p, _corner(t0, t1, t2, a), _corner(t0, t1, t2, b))
+        s = _segment_parameter(p, triangle_corner(t0, t1, t2, a), triangle_corner(t0, t1, t2, b))
         w[a + 1] = -(one - s)
         w[b + 1] = -s
     else:
@@ -238,17 +236,17 @@ def _edge_edge_weights(ea0: wp.vec3d, ea1: wp.vec3d, eb0: wp.vec3d, eb1: wp.vec3
         w[kind // 2] = one
         w[kind % 2 + 2] = -one
     elif kind <= 5:  # end point kind - 2 of b against edge a
-        s = _segment_parameter(_pick(ea0, ea1, eb0, eb1, kind - 2), ea0, ea1)
+        s = _segment_parameter(pair_vertex(ea0, ea1, eb0, eb1, kind - 2), ea0, ea1)
         w[0] = one - s
         w[1] = s
         w[kind - 2] = -one
     elif kind <= 7:  # end point kind - 6 of a against edge b
-        t = _segment_parameter(_pick(ea0, ea1, eb0, eb1, kind - 6), eb0, eb1)
+        t = _segment_parameter(pair_vertex(ea0, ea1, eb0, eb1, kind - 6), eb0, eb1)
         w[kind - 6] = one
         w[2] = -(one - t)
         w[3] = -t
     else:
-        a, b, c, e, f = _line_line_gram(ea0, ea1, eb0, eb1)
+        a, b, c, e, f = line_line_gram(ea0, ea1, eb0, eb1)
         den = wp.max(a * e - b * b, wp.float64(2.2250738585072014e-308))  # the smallest normal float64
         s = (b * f - c * e) / den
         t = (a * f - b * c) / den
@@ -272,7 +270,7 @@ def _contact_frame(
     """Tangent projector ``I − n nᵀ`` (``n`` the unit gap ``Σ w_i x_i``) and ``μλ = μ (−κ m b′(d) 2√d)``."""
     gap = x0 * w[0] + x1 * w[1] + x2 * w[2] + x3 * w[3]
     n = gap / wp.length(gap)
-    b, b1, b2 = _barrier(d, dhat2)
+    b, b1, b2 = log_barrier(d, dhat2)
     force = mu * (-stiffness * mollifier * b1 * wp.float64(2.0) * wp.sqrt(d))
     return wp.identity(n=3, dtype=wp.float64) - wp.outer(n, n), force
 
@@ -295,10 +293,10 @@ def _point_triangle_contact_kernel(
     t0 = x[pairs[i, 1]]
     t1 = x[pairs[i, 2]]
     t2 = x[pairs[i, 3]]
-    d = _point_triangle_value(p, t0, t1, t2)
+    d = point_triangle_value(p, t0, t1, t2)
     if d < dhat2:
         active[i] = wp.uint8(1)
-        w = _point_triangle_weights(p, t0, t1, t2, _point_triangle_type(p, t0, t1, t2))
+        w = _point_triangle_weights(p, t0, t1, t2, point_triangle_type(p, t0, t1, t2))
         proj, f = _contact_frame(p, t0, t1, t2, w, d, wp.float64(1.0), dhat2, stiffness, mu)
         for j in range(4):
             index[i, j] = wp.int64(pairs[i, j])
@@ -331,11 +329,11 @@ def _edge_edge_contact_kernel(
     ea1 = x[pairs[i, 1]]
     eb0 = x[pairs[i, 2]]
     eb1 = x[pairs[i, 3]]
-    d = _edge_edge_value(ea0, ea1, eb0, eb1, parallel_tol)
+    d = edge_edge_value(ea0, ea1, eb0, eb1, parallel_tol)
     if d < dhat2:
         active[row] = wp.uint8(1)
-        w = _edge_edge_weights(ea0, ea1, eb0, eb1, _edge_edge_type(ea0, ea1, eb0, eb1, parallel_tol))
-        m, gm, hm = _mollifier(ea0, ea1, eb0, eb1, eps_x[i])
+        w = _edge_edge_weights(ea0, ea1, eb0, eb1, edge_edge_type(ea0, ea1, eb0, eb1, parallel_tol))
+        m, gm, hm = edge_edge_mollifier(ea0, ea1, eb0, eb1, eps_x[i])
         proj, f = _contact_frame(ea0, ea1, eb0, eb1, w, d, m, dhat2, stiffness, mu)
         for j in range(4):
             index[row, j] = wp.int64(pairs[i, j])
@@ -357,12 +355,12 @@ def lagged_contacts(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Lagged friction data of the contacts at the start of a step: the active pairs' weights, projectors, ``μλ``.
 
-    A pair is active when its squared distance ``d`` (:func:`kernels.cloth.point_triangle_distance`,
-    :func:`kernels.cloth.edge_edge_distance`, same closest-feature types) lies below ``d̂²``. For each active pair:
-    weights ``w`` with ``Σ_i w_i x_i`` the gap from the closest point of the second primitive to that of the first
+    A pair is active when its squared distance ``d`` (:func:`kernels.ipc_barrier.point_triangle_distance`,
+    :func:`kernels.ipc_barrier.edge_edge_distance`, same closest-feature types) lies below ``d̂²``. For each active
+    pair: weights ``w`` with ``Σ_i w_i x_i`` the gap from the closest point of the second primitive to that of the first
     (``‖gap‖² = d``), the tangent projector ``I − n nᵀ`` with ``n = gap / ‖gap‖``, and ``μλ = μ (−κ m b′(d) 2√d)``:
     the friction coefficient times the normal force ``−∂(κ m b)/∂√d``, with ``b′`` the derivative of IPC's barrier
-    (:func:`kernels.cloth.barrier`) and ``m`` 1 for point-triangle pairs, the edge-edge mollifier of threshold
+    (:func:`kernels.ipc_barrier.barrier`) and ``m`` 1 for point-triangle pairs, the edge-edge mollifier of threshold
     ``ε_x`` otherwise (Li et al. 2020, IPC §5).
 
     Args:
@@ -370,7 +368,8 @@ def lagged_contacts(
         pt_pairs: ``[P, 4]`` int32 ``(p, t0, t1, t2)`` candidate point-triangle pairs, indices in ``[0, V)`` (not
             checked); contiguous.
         ee_pairs: ``[Q, 4]`` int32 ``(ea0, ea1, eb0, eb1)`` candidate edge-edge pairs, as ``pt_pairs``.
-        ee_eps_x: ``[Q]`` float64 mollifier thresholds (:func:`kernels.cloth.edge_edge_mollifier_threshold`), m⁴.
+        ee_eps_x: ``[Q]`` float64 mollifier thresholds (:func:`kernels.ipc_barrier.edge_edge_mollifier_threshold`),
+            m⁴.
         dhat2: squared activation distance ``d̂²``, m² (1e-6 for the paper's 1 mm); positive.
         stiffness: barrier stiffness ``κ``, J/m⁴ (``b`` is in m⁴); finite, non-negative.
         mu: friction coefficient ``μ``, 1; finite, non-negative.
@@ -384,12 +383,12 @@ def lagged_contacts(
     Raises:
         ValueError: an argument has the wrong shape, dtype or device, or a scalar is out of range.
     """
-    _check_positions(x)
+    check_positions(x)
     if x.dtype != torch.float64:
         raise ValueError(f"positions must be float64 here, got {x.dtype}; convert with .to(torch.float64)")
-    _check_index(pt_pairs, 4, "pt_pairs")
-    _check_index(ee_pairs, 4, "ee_pairs")
-    ee_eps_x = _check_values(ee_eps_x, x, (ee_pairs.shape[0],), "ee_eps_x")
+    check_index(pt_pairs, 4, "pt_pairs")
+    check_index(ee_pairs, 4, "ee_pairs")
+    ee_eps_x = check_values(ee_eps_x, x, (ee_pairs.shape[0],), "ee_eps_x")
     for name, t in (("pt_pairs", pt_pairs), ("ee_pairs", ee_pairs), ("ee_eps_x", ee_eps_x)):
         if t.device != x.device:
             raise ValueError(f"{name} is on {t.device} but x is on {x.device}; move it with .to('{x.device}')")
@@ -430,7 +429,7 @@ def lagged_contacts(
         wp.launch(
             _edge_edge_contact_kernel,
             dim=q,
-            inputs=[x_arg, backend.warp_arg(ee_pairs), backend.warp_arg(ee_eps_x), *scalars, _parallel_tol(x), p],
+            inputs=[x_arg, backend.warp_arg(ee_pairs), backend.warp_arg(ee_eps_x), *scalars, parallel_tolerance(x), p],
             outputs=outputs,
             device=backend.warp_device(),
         )

@@ -19,7 +19,8 @@ from __future__ import annotations
 import torch
 
 from apps.workloads import Case, WorkloadUnavailable, workload
-from kernels import backend, cloth
+from kernels import backend
+from kernels.element_terms import ElementTerms
 from kernels.reference import cloth as ref
 from physavatar.body import Body
 from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth
@@ -45,14 +46,14 @@ def _reference_energies() -> ClothEnergies:
     """The solver's element evaluators with values, gradients and Hessians from the autograd references."""
 
     def membrane(x, faces, rest_inv, rest_area, mu, lam, stress_filter="none"):
-        return cloth.ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter))
+        return ElementTerms(*ref.membrane_energy(x, faces, rest_inv, rest_area, mu, lam, stress_filter))
 
     def bending(x, hinges, rest_angle, rest_weight, k_bend):
-        return cloth.ElementTerms(*ref.bending_energy(x, hinges, rest_angle, rest_weight, k_bend))
+        return ElementTerms(*ref.bending_energy(x, hinges, rest_angle, rest_weight, k_bend))
 
     def contact(x, pt_pairs, ee_pairs, ee_eps_x, dhat, stiffness):
-        pt = cloth.ElementTerms(*ref.point_triangle_barrier(x, pt_pairs, dhat, stiffness))
-        ee = cloth.ElementTerms(*ref.edge_edge_barrier(x, ee_pairs, ee_eps_x, dhat, stiffness))
+        pt = ElementTerms(*ref.point_triangle_barrier(x, pt_pairs, dhat, stiffness))
+        ee = ElementTerms(*ref.edge_edge_barrier(x, ee_pairs, ee_eps_x, dhat, stiffness))
         return pt, ee
 
     def membrane_value(*args):

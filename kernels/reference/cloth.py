@@ -1,4 +1,8 @@
-"""Pure torch/NumPy references for :mod:`kernels.cloth`, written independently of the kernels' closed forms.
+"""Pure torch/NumPy references for the garment simulator's kernels, written independently of their closed forms.
+
+One module serves :mod:`kernels.shell`, :mod:`kernels.ipc_barrier`, :mod:`kernels.contact` and :mod:`kernels.ccd`:
+the brute-force distances are what the barrier, contact and first-contact references are built on, and the whole
+oracle is short enough to read in one place.
 
 Energies are plain formulas of the element's vertex positions; gradients and Hessians come from
 ``torch.func`` (autograd), never from the kernels' hand-derived expressions. Distances are found by brute
@@ -239,7 +243,7 @@ def edge_edge_first_contact(q0: np.ndarray, dq: np.ndarray, tol: float = 1e-8) -
 
 
 def pair_boxes_overlap(x, dx, pairs, split: int, dhat: float, parallel: float = 0.0) -> torch.Tensor:
-    """Reference of :func:`kernels.cloth.pair_boxes_overlap`: per-vertex boxes of the sweep, united per primitive;
+    """Reference of :func:`kernels.contact.pair_boxes_overlap`: per-vertex boxes of the sweep, united per primitive;
     edge pairs parallel (``sin²θ < parallel``) at both ends dropped."""
     end = x if dx is None else x + dx
     lo, hi = torch.minimum(x, end), torch.maximum(x, end)

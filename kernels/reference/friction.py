@@ -2,16 +2,17 @@
 chains of torch operations.
 
 :func:`lagged_contacts` takes the squared distances and closest-feature types from
-:func:`kernels.cloth.point_triangle_distance` / :func:`kernels.cloth.edge_edge_distance` and the barrier derivative
-from :func:`kernels.cloth.barrier`, and computes the closest-point weights (:func:`point_triangle_weights`,
-:func:`edge_edge_weights`), mollifiers, normals and forces with masked torch operations, one pair kind at a time.
+:func:`kernels.ipc_barrier.point_triangle_distance` / :func:`kernels.ipc_barrier.edge_edge_distance` and the barrier
+derivative from :func:`kernels.ipc_barrier.barrier`, and computes the closest-point weights
+(:func:`point_triangle_weights`, :func:`edge_edge_weights`), mollifiers, normals and forces with masked torch
+operations, one pair kind at a time.
 """
 
 from __future__ import annotations
 
 import torch
 
-from kernels import cloth
+from kernels import ipc_barrier
 
 __all__ = ["edge_edge_weights", "friction_potential", "lagged_contacts", "point_triangle_weights"]
 
@@ -68,7 +69,7 @@ def point_triangle_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
 
     Args:
         q: ``[P, 4, 3]`` positions ``(p, t0, t1, t2)`` of each pair, m.
-        kind: ``[P]`` closest-feature types (:data:`kernels.cloth.POINT_TRIANGLE_TYPES`).
+        kind: ``[P]`` closest-feature types (:data:`kernels.ipc_barrier.POINT_TRIANGLE_TYPES`).
 
     Returns:
         ``[P, 4]`` weights, 1: ``w_0 = 1`` and the triangle's weights are minus the closest point's barycentric
@@ -108,7 +109,7 @@ def edge_edge_weights(q: torch.Tensor, kind: torch.Tensor) -> torch.Tensor:
 
     Args:
         q: ``[Q, 4, 3]`` positions ``(ea0, ea1, eb0, eb1)`` of each pair, m.
-        kind: ``[Q]`` closest-feature types (:data:`kernels.cloth.EDGE_EDGE_TYPES`).
+        kind: ``[Q]`` closest-feature types (:data:`kernels.ipc_barrier.EDGE_EDGE_TYPES`).
 
     Returns:
         ``[Q, 4]`` weights, 1: edge a's barycentric coordinates of its closest point, then minus edge b's.
@@ -177,12 +178,12 @@ def lagged_contacts(
     """
     pieces = []
     if pt_pairs.shape[0]:
-        kind, terms = cloth.point_triangle_distance(x, pt_pairs)
+        kind, terms = ipc_barrier.point_triangle_distance(x, pt_pairs)
         q = x[pt_pairs.long()]
         weight = point_triangle_weights(q, kind)
         pieces.append((pt_pairs.long(), terms.energy, weight, torch.ones_like(terms.energy)))
     if ee_pairs.shape[0]:
-        kind, terms = cloth.edge_edge_distance(x, ee_pairs)
+        kind, terms = ipc_barrier.edge_edge_distance(x, ee_pairs)
         q = x[ee_pairs.long()]
         c = (torch.linalg.cross(q[:, 1] - q[:, 0], q[:, 3] - q[:, 2]) ** 2).sum(1)
         mollifier = torch.where(c < ee_eps_x, (2.0 - c / ee_eps_x) * c / ee_eps_x, torch.ones_like(c))
@@ -196,7 +197,7 @@ def lagged_contacts(
     mollifier = torch.cat([p[3] for p in pieces])
     active = d < dhat2
     index, d, weight, mollifier = index[active], d[active], weight[active], mollifier[active]
-    _, b1, _ = cloth.barrier(d.contiguous(), dhat2)
+    _, b1, _ = ipc_barrier.barrier(d.contiguous(), dhat2)
     force = mu * (-stiffness * mollifier * b1 * 2.0 * torch.sqrt(d))
     gap = (weight[:, :, None] * x[index]).sum(1)
     normal = gap / torch.linalg.norm(gap, dim=1, keepdim=True)

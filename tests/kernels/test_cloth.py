@@ -1,4 +1,5 @@
-"""Cloth energies, IPC distances and additive CCD against autograd references, finite differences and ipctk."""
+"""Garment kernels (kernels.shell, .ipc_barrier, .contact, .ccd, .element_terms) against autograd references, finite
+differences and ipctk: one module, as their oracle kernels.reference.cloth is one."""
 
 import math
 
@@ -6,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from kernels import backend, cloth
+from kernels import backend, ccd, contact, element_terms, ipc_barrier, shell
 from kernels.reference import cloth as ref
 
 try:  # the IPC Toolkit is the external oracle for barrier, distances and mollifier where it is installed
@@ -67,8 +68,8 @@ def _assemble_grad(grad: torch.Tensor, index: torch.Tensor, nv: int) -> torch.Te
 
 def _deformed_sheet(seed: int = 0):
     x_rest, faces = _sheet()
-    hinges, _ = cloth.hinges_from_faces(faces)
-    rest = _host(cloth.rest_state(_dev(x_rest), _dev(faces), _dev(hinges)))
+    hinges, _ = shell.hinges_from_faces(faces)
+    rest = _host(shell.rest_state(_dev(x_rest), _dev(faces), _dev(hinges)))
     g = torch.Generator().manual_seed(seed)
     x = x_rest * torch.tensor([1.1, 0.95, 1.0], dtype=F64) + 0.02 * torch.randn(x_rest.shape, dtype=F64, generator=g)
     return x_rest, x, faces, hinges, rest
@@ -80,25 +81,25 @@ def _deformed_sheet(seed: int = 0):
 
 
 def test_plane_stress_lame_values_and_bad_input():
-    mu, lam = cloth.plane_stress_lame(1.0e6, 0.3, 2.0e-3)
+    mu, lam = shell.plane_stress_lame(1.0e6, 0.3, 2.0e-3)
     assert mu == pytest.approx(2.0e-3 * 1.0e6 / 2.6)
     assert lam == pytest.approx(2.0e-3 * 1.0e6 * 0.3 / 0.91)
     with pytest.raises(ValueError, match="poisson"):
-        cloth.plane_stress_lame(1.0e6, 0.5, 1e-3)
+        shell.plane_stress_lame(1.0e6, 0.5, 1e-3)
     with pytest.raises(ValueError, match="thickness"):
-        cloth.plane_stress_lame(1.0e6, 0.3, 0.0)
+        shell.plane_stress_lame(1.0e6, 0.3, 0.0)
 
 
 def test_hinges_from_faces_finds_interior_edges_with_outward_wings(device):
     x, faces = _sheet(4, curved=False)
-    hinges, hinge_faces = cloth.hinges_from_faces(faces)
+    hinges, hinge_faces = shell.hinges_from_faces(faces)
     n = 4
     interior = (n - 1) * (n - 2) * 2 + (n - 1) ** 2  # axis-aligned interior edges + diagonals
     assert hinges.shape == (interior, 4) and hinges.dtype == torch.int32
     f = faces.long()
     for (v0, v1, v2, v3), (fa, fb) in zip(hinges.long().tolist(), hinge_faces.tolist(), strict=True):
         assert {v0, v1, v2} == set(f[fa].tolist()) and {v0, v1, v3} == set(f[fb].tolist())
-    rest = cloth.rest_state(_dev(x), _dev(faces), _dev(hinges))
+    rest = shell.rest_state(_dev(x), _dev(faces), _dev(hinges))
     torch.testing.assert_close(_host(rest.rest_angle), torch.zeros(interior, dtype=F64), atol=1e-12, rtol=0)
     torch.testing.assert_close(_host(rest.rest_area), torch.full((faces.shape[0],), 0.005, dtype=F64))
     # flat unit hinge of two right triangles: ē = 0.1·√2 (diagonal) or 0.1, Ā = 0.01
@@ -107,11 +108,11 @@ def test_hinges_from_faces_finds_interior_edges_with_outward_wings(device):
 
 def test_hinges_from_faces_rejects_bad_meshes():
     with pytest.raises(ValueError, match="more than two faces"):
-        cloth.hinges_from_faces(torch.tensor([[0, 1, 2], [1, 0, 3], [0, 1, 4]], dtype=torch.int32))
+        shell.hinges_from_faces(torch.tensor([[0, 1, 2], [1, 0, 3], [0, 1, 4]], dtype=torch.int32))
     with pytest.raises(ValueError, match="orient all faces consistently"):
-        cloth.hinges_from_faces(torch.tensor([[0, 1, 2], [0, 1, 3]], dtype=torch.int32))
+        shell.hinges_from_faces(torch.tensor([[0, 1, 2], [0, 1, 3]], dtype=torch.int32))
     with pytest.raises(ValueError, match=r"\[F, 3\]"):
-        cloth.hinges_from_faces(torch.zeros(4, 4, dtype=torch.int32))
+        shell.hinges_from_faces(torch.zeros(4, 4, dtype=torch.int32))
 
 
 # ------------------------------------------------------------------------------------------------------------
@@ -122,7 +123,7 @@ def test_hinges_from_faces_rejects_bad_meshes():
 def test_membrane_matches_autograd_reference_and_finite_differences(device):
     x_rest, x, faces, _, rest = _deformed_sheet()
     mu = torch.linspace(1.0, 3.0, faces.shape[0], dtype=F64)
-    out = _host(cloth.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), _dev(mu), 0.7))
+    out = _host(shell.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), _dev(mu), 0.7))
     energy, grad, hess = ref.membrane_energy(x, faces, rest.rest_inv, rest.rest_area, mu, 0.7)
     assert energy.min() > 0
     torch.testing.assert_close(out.energy, energy, rtol=1e-10, atol=1e-14)
@@ -130,16 +131,16 @@ def test_membrane_matches_autograd_reference_and_finite_differences(device):
     torch.testing.assert_close(out.hess, hess, rtol=1e-9, atol=1e-10)
 
     def kernel_grad(xx):
-        terms = cloth.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), _dev(mu), 0.7)
+        terms = shell.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), _dev(mu), 0.7)
         return _host(terms.grad).reshape(faces.shape[0], -1)
 
     def kernel_energy(xx):
-        return _host(cloth.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 2.0, 0.7))[
+        return _host(shell.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 2.0, 0.7))[
             0
         ].sum()
 
     fd = _fd_grad(kernel_energy, x).reshape(-1, 3)
-    analytic = _host(cloth.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 2.0, 0.7))
+    analytic = _host(shell.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 2.0, 0.7))
     torch.testing.assert_close(_assemble_grad(analytic.grad, faces, x.shape[0]), fd, rtol=1e-6, atol=1e-8)
     # Hessian of element 3 against differences of its gradient, moving that element's own vertices
     e = 3
@@ -152,17 +153,17 @@ def test_bending_matches_autograd_reference_and_finite_differences(device):
     x_rest, x, faces, hinges, rest = _deformed_sheet(1)
     k = torch.linspace(0.5, 2.0, hinges.shape[0], dtype=F64)
     args = (_dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), _dev(k))
-    out = _host(cloth.bending_energy(_dev(x), *args))
+    out = _host(shell.bending_energy(_dev(x), *args))
     energy, grad, hess = ref.bending_energy(x, hinges, rest.rest_angle, rest.rest_weight, k)
     assert energy.max() > 1e-4
     torch.testing.assert_close(out.energy, energy, rtol=1e-10, atol=1e-14)
     torch.testing.assert_close(out.grad, grad, rtol=1e-8, atol=1e-10)
     torch.testing.assert_close(out.hess, hess, rtol=1e-7, atol=1e-7)
 
-    fd = _fd_grad(lambda xx: _host(cloth.bending_energy(_dev(xx), *args)).energy.sum(), x).reshape(-1, 3)
+    fd = _fd_grad(lambda xx: _host(shell.bending_energy(_dev(xx), *args)).energy.sum(), x).reshape(-1, 3)
     torch.testing.assert_close(_assemble_grad(out.grad, hinges, x.shape[0]), fd, rtol=1e-6, atol=1e-8)
     h = 5
-    fd_h = _fd_grad(lambda xx: _host(cloth.bending_energy(_dev(xx), *args)).grad[h].reshape(-1), x)
+    fd_h = _fd_grad(lambda xx: _host(shell.bending_energy(_dev(xx), *args)).grad[h].reshape(-1), x)
     cols = (hinges[h].long()[:, None] * 3 + torch.arange(3)).reshape(-1)
     torch.testing.assert_close(out.hess[h], fd_h[:, cols], rtol=1e-5, atol=1e-6)
 
@@ -175,7 +176,7 @@ def test_dihedral_angle_sign_convention(device):
     for lift, sign in ((0.3, -1.0), (-0.3, 1.0)):
         bent = x.clone()
         bent[2:, 2] = lift  # wings fold towards +z (the normal side) or away from it
-        angle = _host(cloth.rest_state(_dev(bent), _dev(faces), _dev(hinge)).rest_angle)[0]
+        angle = _host(shell.rest_state(_dev(bent), _dev(faces), _dev(hinge)).rest_angle)[0]
         assert math.copysign(1.0, angle.item()) == sign
         assert abs(angle.item()) == pytest.approx(2 * math.atan(0.3), rel=1e-12)
         assert angle.item() == pytest.approx(ref.dihedral_angle(bent).item(), rel=1e-12)
@@ -185,9 +186,9 @@ def test_dihedral_angle_sign_convention(device):
 def test_rest_state_has_zero_energy_and_gradient(device, dtype):
     x_rest, _, faces, hinges, _ = _deformed_sheet()
     x = _dev(x_rest.to(dtype))
-    rest = cloth.rest_state(x, _dev(faces), _dev(hinges))
-    m = _host(cloth.membrane_energy(x, _dev(faces), rest.rest_inv, rest.rest_area, 10.0, 5.0))
-    b = _host(cloth.bending_energy(x, _dev(hinges), rest.rest_angle, rest.rest_weight, 1.0))
+    rest = shell.rest_state(x, _dev(faces), _dev(hinges))
+    m = _host(shell.membrane_energy(x, _dev(faces), rest.rest_inv, rest.rest_area, 10.0, 5.0))
+    b = _host(shell.bending_energy(x, _dev(hinges), rest.rest_angle, rest.rest_weight, 1.0))
     tol = 1e-12 if dtype == torch.float64 else 1e-4
     assert m.energy.abs().max() < tol * 1e-2 and m.grad.abs().max() < tol
     assert b.energy.abs().max() < tol * 1e-2 and b.grad.abs().max() < tol
@@ -202,8 +203,8 @@ def test_rigid_motion_leaves_energies_unchanged(device):
     moved = x @ rot.T + torch.tensor([0.3, -2.0, 1.5], dtype=F64)
 
     def energies(xx):
-        m = cloth.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 3.0, 1.0)
-        b = cloth.bending_energy(_dev(xx), _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), 0.1)
+        m = shell.membrane_energy(_dev(xx), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 3.0, 1.0)
+        b = shell.bending_energy(_dev(xx), _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), 0.1)
         return _host(m), _host(b)
 
     (ma, ba), (mb, bb) = energies(x), energies(moved)
@@ -218,15 +219,15 @@ def test_rigid_motion_leaves_energies_unchanged(device):
 def test_projected_hessians_are_psd_and_unchanged_when_psd(device):
     _, x, faces, hinges, rest = _deformed_sheet(4)
     x = x * torch.tensor([0.8, 0.8, 1.0], dtype=F64)  # compression makes StVK indefinite
-    m = _host(cloth.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0))
-    mp = m._replace(hess=_host(cloth.project_psd(_dev(m.hess))))
-    b = _host(cloth.bending_energy(_dev(x), _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), 1.0))
-    bp = b._replace(hess=_host(cloth.project_psd(_dev(b.hess))))
+    m = _host(shell.membrane_energy(_dev(x), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0))
+    mp = m._replace(hess=_host(element_terms.project_psd(_dev(m.hess))))
+    b = _host(shell.bending_energy(_dev(x), _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), 1.0))
+    bp = b._replace(hess=_host(element_terms.project_psd(_dev(b.hess))))
     assert torch.linalg.eigvalsh(m.hess).min() < -1e-3, "the test needs an indefinite membrane Hessian"
     for hess in (mp.hess, bp.hess):
         assert torch.linalg.eigvalsh(hess).min() > -1e-10
     spd = torch.eye(9, dtype=F64) * 2 + 0.1
-    torch.testing.assert_close(cloth.project_psd(spd[None])[0], spd)
+    torch.testing.assert_close(element_terms.project_psd(spd[None])[0], spd)
     torch.testing.assert_close(mp.energy, m.energy)
 
 
@@ -240,8 +241,8 @@ def test_membrane_stress_filters_match_reference_and_are_psd(device, stress_filt
     # per-vertex scalings that stretch some triangles and compress others along one or both axes
     x = x * (0.75 + 0.5 * torch.rand(x.shape[0], 3, generator=g, dtype=F64))
     args = (_dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.3, 0.6)
-    exact = _host(cloth.membrane_energy(_dev(x), *args))
-    got = _host(cloth.membrane_energy(_dev(x), *args, stress_filter=stress_filter))
+    exact = _host(shell.membrane_energy(_dev(x), *args))
+    got = _host(shell.membrane_energy(_dev(x), *args, stress_filter=stress_filter))
     _, _, want = ref.membrane_energy(x, faces, rest.rest_inv, rest.rest_area, 1.3, 0.6, stress_filter=stress_filter)
     torch.testing.assert_close(got.hess, want, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(got.energy, exact.energy, rtol=0, atol=0)
@@ -253,7 +254,7 @@ def test_membrane_stress_filters_match_reference_and_are_psd(device, stress_filt
     assert 0 < int(unchanged.sum()) < faces.shape[0], "the test needs triangles with and without compression"
     assert bool((exact_low[unchanged] > -1e-10).all())
     with pytest.raises(ValueError, match="stress_filter"):
-        cloth.membrane_energy(_dev(x), *args, stress_filter="flip")
+        shell.membrane_energy(_dev(x), *args, stress_filter="flip")
 
 
 def test_float32_kernels_agree_with_float64(device):
@@ -261,8 +262,8 @@ def test_float32_kernels_agree_with_float64(device):
     out = {}
     for dtype in (torch.float64, torch.float32):
         xx, r = _dev(x.to(dtype)), [_dev(t.to(dtype)) for t in rest]
-        m = cloth.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 1.0)
-        b = cloth.bending_energy(xx, _dev(hinges), r[2], r[3], 1.0)
+        m = shell.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 1.0)
+        b = shell.bending_energy(xx, _dev(hinges), r[2], r[3], 1.0)
         out[dtype] = [_host(t).double() for t in (*m, *b)]
     for a, b in zip(out[torch.float32], out[torch.float64], strict=True):
         torch.testing.assert_close(a, b, rtol=2e-3, atol=2e-3 * b.abs().max().item())
@@ -276,7 +277,7 @@ def test_float32_kernels_agree_with_float64(device):
 def test_barrier_matches_reference_and_vanishes_beyond_dhat(device):
     dhat = 1e-6
     d = torch.tensor([1e-12, 1e-9, 3e-7, 9.99e-7, 1e-6, 2e-6], dtype=F64)
-    b, b1, b2 = _host(cloth.barrier(_dev(d), dhat))
+    b, b1, b2 = _host(ipc_barrier.barrier(_dev(d), dhat))
     torch.testing.assert_close(b, ref.barrier(d, dhat), rtol=1e-12, atol=0)
     db = torch.func.vmap(torch.func.grad(lambda t: ref.barrier(t, dhat)))
     torch.testing.assert_close(b1, db(d), rtol=1e-10, atol=0)
@@ -284,14 +285,14 @@ def test_barrier_matches_reference_and_vanishes_beyond_dhat(device):
     assert (b[:4] > 0).all() and (b1[:4] < 0).all() and (b2[:4] > 0).all()
     assert b[-2:].abs().max() == 0 and b1[-2:].abs().max() == 0 and b2[-2:].abs().max() == 0
     with pytest.raises(ValueError, match="squared activation distance"):
-        cloth.barrier(_dev(d), -1.0)
+        ipc_barrier.barrier(_dev(d), -1.0)
 
 
 @needs_ipctk
 def test_barrier_matches_ipctk(device):
     dhat = 1e-6
     d = torch.tensor([1e-12, 1e-9, 3e-7, 9.99e-7], dtype=F64)
-    b, b1, b2 = _host(cloth.barrier(_dev(d), dhat))
+    b, b1, b2 = _host(ipc_barrier.barrier(_dev(d), dhat))
     for k, dk in enumerate(d.tolist()):
         expect = [ipctk.barrier(dk, dhat), ipctk.barrier_first_derivative(dk, dhat)]
         expect.append(ipctk.barrier_second_derivative(dk, dhat))
@@ -337,7 +338,7 @@ def _pairs_of(q: torch.Tensor):
 @pytest.mark.parametrize("near", [False, True])
 def test_distances_match_ipctk(device, kind, near):
     q = _random_pt(300, 7, near) if kind == "point_triangle" else _random_ee(300, 8, near)
-    fn = cloth.point_triangle_distance if kind == "point_triangle" else cloth.edge_edge_distance
+    fn = ipc_barrier.point_triangle_distance if kind == "point_triangle" else ipc_barrier.edge_edge_distance
     name = "point_triangle_distance" if kind == "point_triangle" else "edge_edge_distance"
     dist_fn, grad_fn, hess_fn, type_fn = (getattr(ipctk, name + end) for end in ("", "_gradient", "_hessian", "_type"))
     x, pairs = _pairs_of(q)
@@ -370,8 +371,10 @@ def test_distance_values_equal_the_distances_of_the_derivative_kernels(device, k
     q = _random_pt(300, 11, near) if kind == "point_triangle" else _random_ee(300, 12, near)
     x, pairs = _pairs_of(q)
     x, pairs = _dev(x), _dev(pairs)
-    full = cloth.point_triangle_distance if kind == "point_triangle" else cloth.edge_edge_distance
-    value = cloth.point_triangle_distance_value if kind == "point_triangle" else cloth.edge_edge_distance_value
+    full = ipc_barrier.point_triangle_distance if kind == "point_triangle" else ipc_barrier.edge_edge_distance
+    value = (
+        ipc_barrier.point_triangle_distance_value if kind == "point_triangle" else ipc_barrier.edge_edge_distance_value
+    )
     kinds, terms = full(x, pairs)
     assert len(set(kinds.tolist())) >= (2 if near else 3)
     # one code path against another: CUDA fuses multiply-adds differently per kernel, and near-contact distances
@@ -384,7 +387,7 @@ def test_distance_values_equal_the_distances_of_the_derivative_kernels(device, k
 def test_distances_match_brute_force_reference(device, kind):
     q = _random_pt(60, 9, False) if kind == "point_triangle" else _random_ee(60, 10, False)
     x, pairs = _pairs_of(q)
-    fn = cloth.point_triangle_distance if kind == "point_triangle" else cloth.edge_edge_distance
+    fn = ipc_barrier.point_triangle_distance if kind == "point_triangle" else ipc_barrier.edge_edge_distance
     rfn = ref.point_triangle_distance if kind == "point_triangle" else ref.edge_edge_distance
     _, terms = fn(_dev(x), _dev(pairs))
     terms = _host(terms)
@@ -426,7 +429,7 @@ def _contact_scene(dhat: float):
     ee_pairs = pt_pairs + 96
     stretch = torch.tensor([1.0, 1.3], dtype=F64)[:, None]  # rest edges 30% longer at their far end
     rest = torch.cat([x[:96], (x[96:].reshape(-1, 2, 3) * stretch).reshape(-1, 3)])
-    eps_x = _host(cloth.edge_edge_mollifier_threshold(_dev(rest), _dev(ee_pairs)))
+    eps_x = _host(ipc_barrier.edge_edge_mollifier_threshold(_dev(rest), _dev(ee_pairs)))
     return pt, ee, x, rest, pt_pairs, ee_pairs, eps_x
 
 
@@ -434,7 +437,7 @@ def _contact_scene(dhat: float):
 def test_contact_energy_matches_ipctk(device):
     dhat, kappa = 1e-4, 1e3
     pt, ee, x, rest, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
-    a, b = _host(cloth.contact_energy(_dev(x), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x), dhat, kappa))
+    a, b = _host(contact.contact_energy(_dev(x), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x), dhat, kappa))
     for k, qk in enumerate(ee.numpy()):
         expect_eps = ipctk.edge_edge_mollifier_threshold(*(rest[96 + 4 * k : 100 + 4 * k].numpy()))
         assert eps_x[k].item() == pytest.approx(expect_eps, rel=1e-12)
@@ -452,7 +455,9 @@ def test_contact_terms_of_no_pairs_are_empty_like_the_reference(device):
     energies ``[0]``, gradients ``[0, 4, 3]`` and Hessians ``[0, 12, 12]``."""
     dhat, kappa = 1e-4, 1e3
     _, _, x, _, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
-    kernel = _host(cloth.contact_energy(_dev(x), _dev(pt_pairs[:0]), _dev(ee_pairs[:1]), _dev(eps_x[:1]), dhat, kappa))
+    kernel = _host(
+        contact.contact_energy(_dev(x), _dev(pt_pairs[:0]), _dev(ee_pairs[:1]), _dev(eps_x[:1]), dhat, kappa)
+    )
     reference = (
         ref.point_triangle_barrier(x, pt_pairs[:0], dhat, kappa),
         ref.edge_edge_barrier(x, ee_pairs[:0], eps_x[:0], dhat, kappa),
@@ -465,7 +470,7 @@ def test_contact_terms_of_no_pairs_are_empty_like_the_reference(device):
 def test_contact_energy_matches_reference_and_finite_differences(device):
     dhat, kappa = 1e-4, 1e3
     pt, ee, x, rest, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
-    a, b = _host(cloth.contact_energy(_dev(x), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x), dhat, kappa))
+    a, b = _host(contact.contact_energy(_dev(x), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x), dhat, kappa))
     assert (a.energy > 0).all() and (b.energy > 0).all()
     assert (torch.func.vmap(ref.edge_edge_mollifier)(ee, eps_x) < 1).sum() >= 6, "some pairs must be mollified"
     for got, (energy, grad, hess) in (
@@ -480,7 +485,7 @@ def test_contact_energy_matches_reference_and_finite_differences(device):
     cols = (ee_pairs[k].long()[:, None] * 3 + torch.arange(3)).reshape(-1)
 
     def pair_grad(xx):
-        out = cloth.contact_energy(
+        out = contact.contact_energy(
             _dev(xx), _dev(pt_pairs[:0]), _dev(ee_pairs[k : k + 1]), _dev(eps_x[k : k + 1]), dhat, kappa
         )
         return _host(out[1].grad[0]).reshape(-1)
@@ -507,23 +512,23 @@ def test_energy_values_equal_the_energies_of_the_derivative_kernels(device, dtyp
         else:
             torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5 * float(want.abs().max()))
 
-    m = cloth.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 0.7)
-    same(cloth.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy)
-    b = cloth.bending_energy(xx, _dev(hinges), r[2], r[3], 0.3)
-    same(cloth.bending_energy_value(xx, _dev(hinges), r[2], r[3], 0.3), b.energy)
+    m = shell.membrane_energy(xx, _dev(faces), r[0], r[1], 2.0, 0.7)
+    same(shell.membrane_energy_value(xx, _dev(faces), r[0], r[1], 2.0, 0.7), m.energy)
+    b = shell.bending_energy(xx, _dev(hinges), r[2], r[3], 0.3)
+    same(shell.bending_energy_value(xx, _dev(hinges), r[2], r[3], 0.3), b.energy)
     assert bool((m.energy > 0).all()) and bool((b.energy > 0).any())
     dhat, kappa = 1e-4, 1e3
     pt, ee, x, rest_x, pt_pairs, ee_pairs, eps_x = _contact_scene(dhat)
     args = (_dev(x.to(dtype)), _dev(pt_pairs), _dev(ee_pairs), _dev(eps_x.to(dtype)))
     beyond = 0
     for d in (dhat, dhat / 4):  # the smaller d̂ leaves some pairs beyond it
-        full = cloth.contact_energy(*args, d, kappa)
-        values = cloth.contact_energy_value(*args, d, kappa)
+        full = contact.contact_energy(*args, d, kappa)
+        values = contact.contact_energy_value(*args, d, kappa)
         for got, want in zip(values, full, strict=True):
             same(got, want.energy)
             beyond += int((want.energy == 0).sum())
     assert 0 < beyond < 2 * pt_pairs.shape[0]
-    assert cloth.contact_energy_value(*args[:1], _dev(pt_pairs[:0]), _dev(ee_pairs[:0]), args[3][:0], dhat, 1.0)[
+    assert contact.contact_energy_value(*args[:1], _dev(pt_pairs[:0]), _dev(ee_pairs[:0]), args[3][:0], dhat, 1.0)[
         0
     ].shape == (0,)
 
@@ -553,7 +558,7 @@ def _colliding(kind: str, n: int, seed: int):
 
 def _ccd(kind, q0, dq, **kw):
     x, pairs = _pairs_of(q0)
-    fn = cloth.point_triangle_ccd if kind == "point_triangle" else cloth.edge_edge_ccd
+    fn = ccd.point_triangle_ccd if kind == "point_triangle" else ccd.edge_edge_ccd
     return _host(fn(_dev(x), _dev(dq.reshape(-1, 3)), _dev(pairs), **kw))
 
 
@@ -602,7 +607,7 @@ def test_ccd_straight_approach_and_separation(device):
 def test_ccd_float32_stays_conservative(device):
     q0, dq = _colliding("point_triangle", 32, 14)
     x, pairs = _pairs_of(q0)
-    toi = _host(cloth.point_triangle_ccd(_dev(x.float()), _dev(dq.reshape(-1, 3).float()), _dev(pairs)))
+    toi = _host(ccd.point_triangle_ccd(_dev(x.float()), _dev(dq.reshape(-1, 3).float()), _dev(pairs)))
     for k in range(q0.shape[0]):
         assert 0.0 < toi[k].item() <= ref.point_triangle_first_contact(q0[k].numpy(), dq[k].numpy()) + 1e-6
 
@@ -616,24 +621,24 @@ def test_bad_input_raises_clear_errors(device):
     x_rest, _, faces, hinges, rest = _deformed_sheet()
     x = _dev(x_rest)
     with pytest.raises(ValueError, match=r"int32 \[N, 3\].*\.to\(torch\.int32\)"):
-        cloth.membrane_energy(x, _dev(faces.long()), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0)
+        shell.membrane_energy(x, _dev(faces.long()), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0)
     with pytest.raises(ValueError, match=r"positions must be a float32 or float64 \[V, 3\]"):
-        cloth.membrane_energy(x[:, :2].contiguous(), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0)
+        shell.membrane_energy(x[:, :2].contiguous(), _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area), 1.0, 1.0)
     with pytest.raises(ValueError, match=r"rest_area is torch.float32 but positions are torch.float64"):
-        cloth.membrane_energy(x, _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area.float()), 1.0, 1.0)
+        shell.membrane_energy(x, _dev(faces), _dev(rest.rest_inv), _dev(rest.rest_area.float()), 1.0, 1.0)
     with pytest.raises(ValueError, match=r"rest_angle must have shape"):
-        cloth.bending_energy(x, _dev(hinges), _dev(rest.rest_angle[:-1]), _dev(rest.rest_weight), 1.0)
+        shell.bending_energy(x, _dev(hinges), _dev(rest.rest_angle[:-1]), _dev(rest.rest_weight), 1.0)
     with pytest.raises(ValueError, match="k_bend"):
-        cloth.bending_energy(x, _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), -1.0)
+        shell.bending_energy(x, _dev(hinges), _dev(rest.rest_angle), _dev(rest.rest_weight), -1.0)
     pairs = _dev(torch.zeros(1, 4, dtype=torch.int32))
     with pytest.raises(ValueError, match="eta"):
-        cloth.point_triangle_ccd(x, torch.zeros_like(x), pairs, eta=1.5)
+        ccd.point_triangle_ccd(x, torch.zeros_like(x), pairs, eta=1.5)
     with pytest.raises(ValueError, match="squared activation distance"):
-        cloth.contact_energy(x, pairs, pairs, _dev(torch.ones(1, dtype=F64)), 0.0, 1.0)
+        contact.contact_energy(x, pairs, pairs, _dev(torch.ones(1, dtype=F64)), 0.0, 1.0)
     degenerate = x_rest.clone()
     degenerate[1] = degenerate[0]
     with pytest.raises(ValueError, match="zero area"):
-        cloth.rest_state(_dev(degenerate), _dev(faces), _dev(hinges))
+        shell.rest_state(_dev(degenerate), _dev(faces), _dev(hinges))
 
 
 @pytest.mark.parametrize("split", [1, 2])
@@ -645,16 +650,16 @@ def test_pair_boxes_overlap_matches_the_reference(device, split):
     pairs = torch.randint(0, 200, (3000, 4), generator=g, dtype=torch.int32).to(device)
     for sweep in (None, dx):
         for dhat in (1e-3, 5e-3):
-            got = cloth.pair_boxes_overlap(x, sweep, pairs, split, dhat)
+            got = contact.pair_boxes_overlap(x, sweep, pairs, split, dhat)
             want = ref.pair_boxes_overlap(x, sweep, pairs, split, dhat)
             assert got.dtype == torch.bool
             assert torch.equal(got, want)
             assert 0 < int(got.sum()) < pairs.shape[0]  # both outcomes occur
-    assert cloth.pair_boxes_overlap(x, None, pairs[:0], split, 1e-3).shape == (0,)
+    assert contact.pair_boxes_overlap(x, None, pairs[:0], split, 1e-3).shape == (0,)
     with pytest.raises(ValueError, match="split"):
-        cloth.pair_boxes_overlap(x, None, pairs, 3, 1e-3)
+        contact.pair_boxes_overlap(x, None, pairs, 3, 1e-3)
     with pytest.raises(ValueError, match="parallel"):
-        cloth.pair_boxes_overlap(x, None, pairs, split, 1e-3, parallel=1.0)
+        contact.pair_boxes_overlap(x, None, pairs, split, 1e-3, parallel=1.0)
 
 
 def test_pair_boxes_overlap_drops_edges_parallel_over_the_whole_sweep(device):
@@ -673,8 +678,8 @@ def test_pair_boxes_overlap_drops_edges_parallel_over_the_whole_sweep(device):
     turned = torch.arange(n) % 2 == 1  # every other edge b turns away from parallel during the sweep
     dx[3 * n :][turned] = 0.004 * torch.randn(int(turned.sum()), 3, generator=g, dtype=torch.float64)
     x, dx, pairs = x.to(device), dx.to(device), pairs.to(device)
-    got = cloth.pair_boxes_overlap(x, dx, pairs, 2, 1e-3, parallel=1e-8)
+    got = contact.pair_boxes_overlap(x, dx, pairs, 2, 1e-3, parallel=1e-8)
     assert torch.equal(got, ref.pair_boxes_overlap(x, dx, pairs, 2, 1e-3, parallel=1e-8))
     assert torch.equal(got.cpu(), turned)
-    assert bool(cloth.pair_boxes_overlap(x, dx, pairs, 2, 1e-3).all())  # parallel=0 keeps them
-    assert bool(cloth.pair_boxes_overlap(x, dx, pairs, 1, 1e-3, parallel=1e-8).all())
+    assert bool(contact.pair_boxes_overlap(x, dx, pairs, 2, 1e-3).all())  # parallel=0 keeps them
+    assert bool(contact.pair_boxes_overlap(x, dx, pairs, 1, 1e-3, parallel=1e-8).all())

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from kernels import cloth, cusolver
+from kernels import cusolver, element_terms
 
 needs_cusolver = pytest.mark.skipif(not cusolver.available(), reason="needs cuSOLVER and a CUDA device")
 
@@ -61,8 +61,8 @@ def test_psd_projection_on_cuda_matches_the_cpu_one():
     batch included."""
     h = _symmetric(300, 12, torch.float64, seed=1)
     for absolute in (False, True):
-        on_gpu = cloth.project_psd(h.cuda(), absolute).cpu()
-        on_cpu = cloth.project_psd(h, absolute)
+        on_gpu = element_terms.project_psd(h.cuda(), absolute).cpu()
+        on_cpu = element_terms.project_psd(h, absolute)
         scale = h.abs().amax((1, 2), keepdim=True)
         assert ((on_gpu - on_cpu).abs() / scale).max() < 1e-12
-    assert cloth.project_psd(h[:0].cuda()).shape == (0, 12, 12)
+    assert element_terms.project_psd(h[:0].cuda()).shape == (0, 12, 12)

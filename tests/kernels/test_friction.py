@@ -5,7 +5,7 @@ import math
 import pytest
 import torch
 
-from kernels import backend, cloth
+from kernels import backend, ipc_barrier
 from kernels.friction import friction_potential, lagged_contacts
 from kernels.reference import friction as ref
 
@@ -282,7 +282,7 @@ def _edge_edge_scene(frames: int = 3):
         xs.append(local)
         pairs += [[base, base + 1, base + 2 + 2 * i, base + 3 + 2 * i] for i in range((len(local) - 2) // 2)]
     x, pairs = torch.cat(xs), torch.tensor(pairs, dtype=torch.int32)
-    return x, pairs, torch.tensor(kinds, dtype=torch.int32), cloth.edge_edge_mollifier_threshold(x, pairs)
+    return x, pairs, torch.tensor(kinds, dtype=torch.int32), ipc_barrier.edge_edge_mollifier_threshold(x, pairs)
 
 
 def _random_scene(seed: int, pt: int = 400, ee: int = 400, vertices: int = 300):
@@ -294,7 +294,7 @@ def _random_scene(seed: int, pt: int = 400, ee: int = 400, vertices: int = 300):
         return torch.argsort(torch.rand(k, vertices, generator=g), dim=1)[:, :4].to(torch.int32)
 
     ee_pairs = pairs(ee)
-    return x, pairs(pt), ee_pairs, cloth.edge_edge_mollifier_threshold(x, ee_pairs)
+    return x, pairs(pt), ee_pairs, ipc_barrier.edge_edge_mollifier_threshold(x, ee_pairs)
 
 
 def _lagged_both(x, pt_pairs, ee_pairs, eps_x, dhat2=DHAT2):
@@ -321,16 +321,16 @@ def _assert_matches(got, want, rtol: float = 1e-10):
 
 
 def _active(x, pt_pairs, ee_pairs) -> torch.Tensor:
-    d_pt = cloth.point_triangle_distance(_dev(x), _dev(pt_pairs))[1].energy.cpu()
-    d_ee = cloth.edge_edge_distance(_dev(x), _dev(ee_pairs))[1].energy.cpu()
+    d_pt = ipc_barrier.point_triangle_distance(_dev(x), _dev(pt_pairs))[1].energy.cpu()
+    d_ee = ipc_barrier.edge_edge_distance(_dev(x), _dev(ee_pairs))[1].energy.cpu()
     return torch.cat([d_pt, d_ee]) < DHAT2
 
 
 def test_lagged_contacts_cover_every_closest_feature_type(device):
     x_pt, pt_pairs, pt_kinds = _point_triangle_scene()
     x_ee, ee_pairs, ee_kinds, eps_x = _edge_edge_scene()
-    assert torch.equal(cloth.point_triangle_distance(_dev(x_pt), _dev(pt_pairs))[0].cpu(), pt_kinds)
-    assert torch.equal(cloth.edge_edge_distance(_dev(x_ee), _dev(ee_pairs))[0].cpu(), ee_kinds)
+    assert torch.equal(ipc_barrier.point_triangle_distance(_dev(x_pt), _dev(pt_pairs))[0].cpu(), pt_kinds)
+    assert torch.equal(ipc_barrier.edge_edge_distance(_dev(x_ee), _dev(ee_pairs))[0].cpu(), ee_kinds)
     # both kinds of pairs in one position array
     x = torch.cat([x_pt, x_ee])
     ee_pairs = ee_pairs + x_pt.shape[0]
@@ -357,8 +357,8 @@ def test_lagged_contacts_match_the_reference_on_random_pairs(device):
     assert 200 < int(active.sum()) < 700
     kinds = torch.cat(
         [
-            cloth.point_triangle_distance(_dev(x), _dev(pt_pairs))[0].cpu(),
-            cloth.edge_edge_distance(_dev(x), _dev(ee_pairs))[0].cpu() + 7,
+            ipc_barrier.point_triangle_distance(_dev(x), _dev(pt_pairs))[0].cpu(),
+            ipc_barrier.edge_edge_distance(_dev(x), _dev(ee_pairs))[0].cpu() + 7,
         ]
     )
     assert set(kinds[active].tolist()) == set(range(16))
@@ -377,7 +377,7 @@ def test_lagged_contacts_closed_forms(device):
     )
     pt_pairs = torch.tensor([[3, 0, 1, 2]], dtype=torch.int32)
     ee_pairs = torch.tensor([[0, 1, 4, 5]], dtype=torch.int32)
-    eps_x = cloth.edge_edge_mollifier_threshold(x, ee_pairs)
+    eps_x = ipc_barrier.edge_edge_mollifier_threshold(x, ee_pairs)
     index, weight, projector, force = (
         t.cpu() for t in lagged_contacts(*map(_dev, (x, pt_pairs, ee_pairs, eps_x)), DHAT2, KAPPA, MU)
     )
@@ -400,13 +400,13 @@ def test_weights_give_the_closest_point_difference(device, which):
     if which == "point_triangle":
         x, pairs = torch.cat([x, x_pt]), torch.cat([pt_pairs, pt_c + x.shape[0]])
         ee_pairs, eps_x = ee_pairs[:0], eps_x[:0]
-        kind, terms = cloth.point_triangle_distance(_dev(x), _dev(pairs))
+        kind, terms = ipc_barrier.point_triangle_distance(_dev(x), _dev(pairs))
         weight = ref.point_triangle_weights(_dev(x)[_dev(pairs).long()], kind)
         lagged = lagged_contacts(*map(_dev, (x, pairs, ee_pairs, eps_x)), DHAT2, KAPPA, MU)
     else:
         x, pairs = torch.cat([x, x_ee]), torch.cat([ee_pairs, ee_c + x.shape[0]])
         eps_x = torch.cat([eps_x, eps_c])
-        kind, terms = cloth.edge_edge_distance(_dev(x), _dev(pairs))
+        kind, terms = ipc_barrier.edge_edge_distance(_dev(x), _dev(pairs))
         weight = ref.edge_edge_weights(_dev(x)[_dev(pairs).long()], kind)
         lagged = lagged_contacts(*map(_dev, (x, pt_pairs[:0], pairs, eps_x)), DHAT2, KAPPA, MU)
     d = terms.energy.cpu()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from kernels import backend, cloth
+from kernels import backend, ccd, ipc_barrier
 from kernels.reference import cloth as ref
 
 try:  # the IPC Toolkit is the external oracle where it is installed
@@ -79,19 +79,21 @@ def test_flat_strip_sweeps_are_not_blocked(device):
     lift = torch.zeros_like(x)
     lift[:, 2] = 1e-6
     for dx in (stretch, rigid, lift, stretch + lift):
-        toi = cloth.edge_edge_ccd(_dev(x), _dev(dx), _dev(pairs)).cpu()
+        toi = ccd.edge_edge_ccd(_dev(x), _dev(dx), _dev(pairs)).cpu()
         assert toi.min().item() == 1.0, f"a flat sweep stopped at t = {toi.min().item()}"
-    distance = cloth.edge_edge_distance_value(_dev(x), _dev(pairs)).cpu()
+    distance = ipc_barrier.edge_edge_distance_value(_dev(x), _dev(pairs)).cpu()
     assert distance.min().item() > (0.0146 - 2e-4) ** 2
 
 
 def test_flat_strip_distances_match_the_reference(device):
     x, diagonals = _strip()
     pairs = _parallel_diagonal_pairs(x, diagonals)
-    kinds, terms = cloth.edge_edge_distance(_dev(x), _dev(pairs))
+    kinds, terms = ipc_barrier.edge_edge_distance(_dev(x), _dev(pairs))
     brute = torch.func.vmap(ref.edge_edge_sq_distance)(x[pairs.long()])
     torch.testing.assert_close(terms.energy.cpu(), brute, rtol=1e-12, atol=0.0)
-    torch.testing.assert_close(cloth.edge_edge_distance_value(_dev(x), _dev(pairs)).cpu(), brute, rtol=1e-12, atol=0.0)
+    torch.testing.assert_close(
+        ipc_barrier.edge_edge_distance_value(_dev(x), _dev(pairs)).cpu(), brute, rtol=1e-12, atol=0.0
+    )
     parallel = _exactly_parallel(x, pairs)
     assert not bool((kinds.cpu()[parallel] == 8).any()), "parallel edges never take the line-line type"
 
@@ -111,7 +113,7 @@ def _coplanar_segments(count: int, seed: int) -> torch.Tensor:
 def test_coplanar_and_parallel_distances_match_reference_and_ipctk(device):
     q = _coplanar_segments(300, 3)
     x, pairs = q.reshape(-1, 3).contiguous(), torch.arange(4 * len(q), dtype=torch.int32).reshape(-1, 4)
-    _, terms = cloth.edge_edge_distance(_dev(x), _dev(pairs))
+    _, terms = ipc_barrier.edge_edge_distance(_dev(x), _dev(pairs))
     got = terms.energy.cpu()
     brute = torch.func.vmap(ref.edge_edge_sq_distance)(q)
     expect = torch.tensor([ipctk.edge_edge_distance(*qk) for qk in q.numpy()], dtype=F64)
@@ -128,7 +130,7 @@ def test_flat_strip_ccd_agrees_with_ipctk_on_no_contact(device):
     pairs = _parallel_diagonal_pairs(x, diagonals)
     dx = torch.zeros_like(x)
     dx[:, 1] = -1e-3 * (x[:, 1].max() - x[:, 1])
-    toi = cloth.edge_edge_ccd(_dev(x), _dev(dx), _dev(pairs)).cpu()
+    toi = ccd.edge_edge_ccd(_dev(x), _dev(dx), _dev(pairs)).cpu()
     narrow = ipctk.AdditiveCCD()
     for k, p in enumerate(pairs.long()):
         q0, q1 = x[p].numpy(), (x[p] + dx[p]).numpy()

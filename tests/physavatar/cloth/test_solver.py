@@ -4,18 +4,8 @@ import pytest
 import torch
 
 from kernels import backend, cudss
-from kernels.reference.assembly import newton_matrix
-from physavatar.cloth import (
-    PHASES,
-    ClothConfig,
-    ClothControl,
-    ClothState,
-    SolverCloth,
-    _Element,
-    _NewtonLoop,
-    _NewtonMatrices,
-    bending_stiffness,
-)
+from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothState, SolverCloth, bending_stiffness
+from physavatar.cloth.newton_loop import NewtonLoop
 from physavatar.shapes import grid_sheet, icosphere
 
 F64 = torch.float64
@@ -181,7 +171,7 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
     lifted = body + torch.tensor([0.0, 4e-3, 0.0], dtype=F64, device=body.device)
     rising = ClothControl(body, lifted, control.boundary_index, control.boundary_target)
     X, target, ctx = solver._context(state, rising, 0.04)
-    cover = solver._cover(X, target, ctx, 5e-3)
+    cover = solver.contact.cover(X, target, ctx.kinematic, ctx.x_rest, 5e-3)
     generator = torch.Generator().manual_seed(0)
 
     def rows(index: torch.Tensor) -> set:
@@ -190,10 +180,11 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
     for scale in (1e-3, 4e-3, 3e-2):
         p = (2.0 * torch.rand(X.shape, generator=generator, dtype=F64) - 1.0).to(X.device) * scale
         p[solver.vertex_count :] = target[solver.vertex_count :] - X[solver.vertex_count :]
-        assert solver._covers(cover, X, p) == (scale < 5e-3)
+        assert solver.contact.covers(cover, X, p) == (scale < 5e-3)
         if scale > 5e-3:
             continue
-        fresh, reused = solver._broad_phase(X, p, ctx), solver._swept(X, p, cover)
+        fresh = solver.contact.broad_phase(X, p, ctx.kinematic, ctx.x_rest)
+        reused = solver.contact.swept(X, p, cover)
         assert fresh.pt.shape[0] > 0 and fresh.pt_body > 0  # the sheet lies on the sphere
         assert rows(reused.pt) == rows(fresh.pt) and rows(reused.ee) == rows(fresh.ee)
         assert (reused.pt_body, reused.ee_body) == (fresh.pt_body, fresh.ee_body)
@@ -233,13 +224,13 @@ def test_linear_solvers_take_the_same_steps(device):
     # one Newton system of the sheet in contact, solved by each
     solver = solvers["direct"]
     X, target, ctx = solver._context(finals["direct"], control, 0.04)
-    pairs = solver._broad_phase(X, torch.zeros_like(X), ctx)
-    _, grad, elements = solver._potential(X, solver._near(X, pairs, ctx), ctx)
+    pairs = solver.contact.broad_phase(X, torch.zeros_like(X), ctx.kinematic, ctx.x_rest)
+    _, grad, elements = solver.potential.evaluate(X, solver.contact.near(X, pairs), ctx)
     assert any(element.reach is not None and element.index.shape[0] for element in elements)  # contacts
     matrix, rhs = solver._assemble(elements, grad, torch.zeros_like(X), ctx)
-    reference = solver._solve(matrix, rhs.reshape(-1))
+    reference = solver.linear.solve(matrix, rhs.reshape(-1))
     for name in names:
-        p = solvers[name]._solve(matrix, rhs.reshape(-1))
+        p = solvers[name].linear.solve(matrix, rhs.reshape(-1))
         torch.testing.assert_close(p, reference, rtol=0.0, atol=1e-9 * float(reference.abs().max()))
 
     tol_step = solver.config.newton_tolerance * 0.04
@@ -273,7 +264,8 @@ def test_fixed_shape_newton_loop_takes_the_exact_lists_steps(device):
     runs = {}
     for static in (False, True):
         solver, control, _, _ = _sheet_over_sphere(10)
-        loop = solver._loop = _NewtonLoop(solver, static=static)
+        parts = (solver.potential, solver.contact, solver.matrices, solver.linear)
+        loop = solver.loop = NewtonLoop(*parts, solver.config.newton_tolerance, static=static)
         loop.capacity.update(active_pt=2, active_ee=2, swept_pt=2, swept_ee=2)
         state = solver.initial_state()
         trace = []
@@ -336,75 +328,3 @@ def test_bad_input_raises_clear_errors(device):
     with pytest.raises(ValueError, match="shape"):
         state = solver.initial_state()
         solver.step(ClothState(state.x[:-1], state.v[:-1]), state, control, 0.04)
-
-
-def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
-    """The Newton matrices keep the garment's pattern; a self-contact joining two vertices for the first time grows it
-    once, and it stays for the next step (cuDSS analyses it once). New free vertices restart it. Every matrix is the
-    dense sum of its blocks, with the kinematic vertices' blocks on the right-hand side."""
-    _, faces = grid_sheet(3, 3, 0.1)  # 9 vertices
-    torch_device = backend.torch_device()
-    faces = faces.to(torch_device, torch.int32)
-    g = torch.Generator().manual_seed(3)
-
-    def spd(count: int, size: int) -> torch.Tensor:
-        a = torch.randn(count, size, size, generator=g, dtype=F64)
-        return (a @ a.transpose(1, 2) + size * torch.eye(size, dtype=F64)).to(torch_device)
-
-    def dofs(kinematic: list[int]) -> torch.Tensor:
-        dof = torch.full((9,), -1, dtype=torch.int32)
-        free = [i for i in range(9) if i not in kinematic]
-        dof[free] = torch.arange(len(free), dtype=torch.int32)
-        return dof.to(torch_device)
-
-    membrane = _Element(faces, spd(faces.shape[0], 9), 0.5, "abs", None)
-    far = torch.tensor([[0, 8, 2, 6]], dtype=torch.int32, device=torch_device)  # corners no triangle joins
-    contact = _Element(far, spd(1, 12), 0.5, "clamp", far)
-    matrices = _NewtonMatrices([faces])
-    p_kin = torch.randn(9, 3, generator=g, dtype=F64).to(torch_device)
-    solver = cudss.SparseSPDSolver(torch_device) if device == "cuda" and cudss.available() else None
-    patterns = []
-    for elements, kinematic in (
-        ([membrane], [4]),
-        ([membrane, contact], [4]),  # grows
-        ([membrane, contact], [4]),  # a new step, the same free vertices: kept
-        ([membrane], [4]),
-        ([membrane, contact], [4, 5]),  # new free vertices: restarts from the garment, then grows
-    ):
-        dof = dofs(kinematic)
-        n = int((dof >= 0).sum())
-        rhs = torch.randn(n, 3, generator=g, dtype=F64).to(torch_device)
-        push = p_kin * (dof < 0)[:, None]
-        matrix, out = matrices.assemble(elements, rhs, dof, push, None)
-        expected, pushed = newton_matrix(n, [(e.index, e.hess, e.scale) for e in elements], dof, push)
-        torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
-        torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
-        patterns.append(matrix.pattern)
-        if solver is not None:
-            assert solver.factor(matrix.pattern.crow, matrix.pattern.col, matrix.values)
-            x = solver.solve(out.reshape(-1))
-            torch.testing.assert_close(expected @ x, out.reshape(-1), rtol=1e-10, atol=1e-10)
-    assert patterns[0] is not patterns[1] and patterns[1] is patterns[2] is patterns[3]
-    assert patterns[4] is not patterns[3] and patterns[4].n == 7
-    if solver is not None:
-        assert solver.analyses == 3
-
-    # the Newton loop scatters without reading: the blocks outside the pattern are counted on the device and bounded
-    # on the diagonal (the matrix exceeds the exact one by a PSD term), and the pattern grows at the next step
-    fresh, dof, elements = _NewtonMatrices([faces]), dofs([4]), [membrane, contact]
-    rhs = torch.randn(8, 3, generator=g, dtype=F64).to(torch_device)
-    push = p_kin * (dof < 0)[:, None]
-    active = fresh.prepare(elements, dof, 8)
-    matrix, out, missing = fresh.scatter(active, rhs, dof, push, None)
-    expected, pushed = newton_matrix(8, [(e.index, e.hess, e.scale) for e in elements], dof, push)
-    assert int(missing) > 0
-    assert float(torch.linalg.eigvalsh(matrix.to_dense() - expected).min()) > -1e-9
-    torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
-    before = fresh.pattern
-    fresh.defer(elements, dof, 8)
-    assert fresh.pattern is before
-    dof = dofs([4])  # the next step, with the same free vertices
-    matrix, out, missing = fresh.scatter(fresh.prepare(elements, dof, 8), rhs, dof, push, None)
-    assert fresh.pattern is not before and int(missing) == 0
-    torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)

@@ -1,0 +1,453 @@
+"""The garment simulator's solver: :class:`SolverCloth`, its state, control and step statistics.
+
+:class:`SolverCloth` builds the simulator from its parts (:mod:`physavatar.cloth`): the incremental potential
+(:class:`~physavatar.cloth.potential.IncrementalPotential`), the contact
+(:class:`~physavatar.cloth.contact.ClothContact`) and the Newton system
+(:class:`~physavatar.cloth.newton_system.NewtonMatrices`, :class:`~physavatar.cloth.newton_system.LinearSolver`),
+which the Newton loop (:class:`~physavatar.cloth.newton_loop.NewtonLoop`) runs through. It checks each step's
+inputs, drives the loop and carries parameter sensitivities through a converged step.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from kernels import backend
+from kernels.raycast import MeshBVH
+from physavatar.cloth.config import ClothConfig
+from physavatar.cloth.contact import ClothContact, ContactPairs, friction_potential
+from physavatar.cloth.newton_loop import NewtonLoop, PhaseTimer
+from physavatar.cloth.newton_system import LinearSolver, NewtonElement, NewtonMatrices
+from physavatar.cloth.potential import ClothEnergies, IncrementalPotential, StepContext
+
+__all__ = ["SENSITIVITY_PARAMETERS", "ClothControl", "ClothState", "SolverCloth", "StepStats"]
+
+F64 = torch.float64
+SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
+"""The material parameters :meth:`SolverCloth.sensitivity_step` differentiates with respect to."""
+
+
+@dataclass
+class ClothState:
+    """Garment state: positions ``x [V, 3]`` (m) and velocities ``v [V, 3]`` (m/s), float64 on the backend device."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+
+
+@dataclass
+class ClothControl:
+    """What moves the garment this step.
+
+    Attributes:
+        body_start: ``[B, 3]`` body collider vertices at the start of the step, m.
+        body_end: ``[B, 3]`` body collider vertices at the end of the step, m (linear motion in between).
+        boundary_index: ``[D]`` int64 garment vertices that follow their targets exactly (Dirichlet).
+        boundary_target: ``[D, 3]`` their positions at the end of the step, m.
+    """
+
+    body_start: torch.Tensor
+    body_end: torch.Tensor
+    boundary_index: torch.Tensor
+    boundary_target: torch.Tensor
+
+    @staticmethod
+    def free(device: torch.device | None = None) -> ClothControl:
+        """No body and no boundary vertices."""
+        empty = torch.zeros(0, 3, dtype=F64, device=device)
+        return ClothControl(empty, empty, torch.zeros(0, dtype=torch.int64, device=device), empty)
+
+
+@dataclass
+class StepStats:
+    """What one step did.
+
+    Attributes:
+        newton_iterations: Newton iterations taken.
+        converged: the tolerance was met with every kinematic vertex on its target.
+        min_distance_body: smallest garment–body distance among pairs within ``d̂`` after the step, m (inf if none).
+        min_distance_self: smallest garment–garment distance among non-adjacent pairs within ``d̂``, m (inf if none).
+        contacts: active barrier pairs after the step.
+        time: seconds spent per phase (:data:`~physavatar.cloth.newton_loop.PHASES`).
+        candidate_searches: broad-phase searches of the step (1 unless a sweep left the candidates' reach).
+        line_search_stalled: the line search could not move (CCD bound or backtracking reached zero step), so the
+            step ended where it stood without converging.
+    """
+
+    newton_iterations: int
+    converged: bool
+    min_distance_body: float
+    min_distance_self: float
+    contacts: int
+    time: dict[str, float] = field(default_factory=dict)
+    candidate_searches: int = 1
+    line_search_stalled: bool = False
+
+
+class SolverCloth:
+    """Codim-IPC garment simulator (PhysAvatar §3.2, Appendix A.3): one implicit step per frame.
+
+    Args:
+        vertices: ``[V, 3]`` garment rest positions, m (the rest shape of membrane and bending).
+        faces: ``[F, 3]`` garment triangles, consistently oriented, manifold.
+        config: material and solver settings.
+        body_faces: ``[Fb, 3]`` body collider triangles indexing ``ClothControl.body_start``; may be empty.
+        energies: element evaluators (default: the Warp kernels of :mod:`kernels.shell` and :mod:`kernels.contact`;
+            with others the Newton loop runs on CUDA as plain calls, not as CUDA graphs, which other evaluators may
+            not allow).
+
+    Raises:
+        ValueError: malformed meshes; a non-manifold or inconsistently oriented garment (from
+            :func:`kernels.shell.hinges_from_faces`).
+    """
+
+    def __init__(
+        self,
+        vertices: torch.Tensor,
+        faces: torch.Tensor,
+        config: ClothConfig,
+        body_faces: torch.Tensor,
+        energies: ClothEnergies | None = None,
+    ):
+        device = backend.torch_device()
+        if vertices.dim() != 2 or vertices.shape[1] != 3 or vertices.shape[0] < 3:
+            raise ValueError(f"vertices must be a [V, 3] tensor with V >= 3, got {tuple(vertices.shape)}")
+        for name, f in (("faces", faces), ("body_faces", body_faces)):
+            if f.dim() != 2 or f.shape[1] != 3 or f.dtype.is_floating_point:
+                raise ValueError(f"{name} must be an integer [F, 3] tensor, got {f.dtype} {tuple(f.shape)}")
+        if faces.shape[0] == 0 or int(faces.min()) < 0 or int(faces.max()) >= vertices.shape[0]:
+            raise ValueError("faces must be non-empty and index the garment vertices")
+        self.config = config
+        self.vertex_count = vertices.shape[0]
+        self.body_vertex_count = int(body_faces.max()) + 1 if body_faces.numel() else 0
+        self.x_rest = vertices.to(device, F64).contiguous()
+        self.faces = faces.to(device, torch.int32).contiguous()
+        self.potential = IncrementalPotential(self.x_rest, self.faces, config, energies or ClothEnergies())
+        self.contact = ClothContact(self.faces, body_faces, self.vertex_count, self.body_vertex_count, config)
+        self.linear = LinearSolver(config, device, self.vertex_count)  # raises where cuDSS is asked for and cannot load
+        self.linear_solver = self.linear.kind
+        self.matrices = NewtonMatrices([self.faces, self.potential.hinges])
+        self.loop = NewtonLoop(self.potential, self.contact, self.matrices, self.linear, config.newton_tolerance)
+        margin = config.candidate_margin
+        self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)
+        self._checked_inside = False
+
+    def initial_state(self) -> ClothState:
+        """The rest shape at rest."""
+        return ClothState(self.x_rest.clone(), torch.zeros_like(self.x_rest))
+
+    # -- one step ---------------------------------------------------------------------------------------------
+
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+        """Advance the garment by ``dt`` seconds (one implicit Euler step of the incremental potential).
+
+        Args:
+            state_in: garment state at the start of the step.
+            state_out: receives the state at the end of the step (may be ``state_in``).
+            control: body collider motion and Dirichlet targets of this step.
+            dt: step size, s (paper: 0.04).
+
+        Returns:
+            :class:`StepStats`.
+
+        Raises:
+            ValueError: malformed inputs, a static solve without boundary vertices, or a garment that starts
+                inside or touching the body collider.
+        """
+        with backend.one_torch_thread_on_cpu():
+            return self._step(state_in, state_out, control, dt)
+
+    def _context(self, state_in: ClothState, control: ClothControl, dt: float):
+        """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet)."""
+        x_start, b0, b1, fixed, target_fixed = self._check_step(state_in, control, dt)
+        v, nb = self.vertex_count, self.body_vertex_count
+        device = x_start.device
+        X = torch.cat([x_start, b0]).contiguous()
+        kinematic = torch.zeros(v + nb, dtype=torch.bool, device=device)
+        kinematic[fixed] = True
+        kinematic[v:] = True
+        target = X.clone()
+        target[fixed] = target_fixed
+        target[v:] = b1
+        dof = torch.full((v + nb,), -1, dtype=torch.int32, device=device)
+        free = torch.nonzero_static(~kinematic, size=v - fixed.numel()).squeeze(1)  # the boundary holds no repeats
+        dof[free] = torch.arange(free.numel(), dtype=torch.int32, device=device)
+        x_hat = x_start + dt * state_in.v.to(device, F64) + dt * dt * self.potential.gravity
+        kappa = self.potential.kappa(dt)
+        x_rest_all = torch.cat([self.x_rest, b0])
+        ctx = StepContext(dt, kappa, X.clone(), x_hat, x_rest_all, kinematic, dof, free, None)
+        return X, target, ctx
+
+    def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+        cfg = self.config
+        X, target, ctx = self._context(state_in, control, dt)
+        v, kinematic = self.vertex_count, ctx.kinematic
+        x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
+        timer = PhaseTimer(X.device)
+
+        timer.start()
+        # the candidates reach from each vertex's start along its predicted path (inertial target, or kinematic
+        # target) and a margin beyond: usually every Newton sweep of the step stays inside
+        predicted = target.clone()
+        if not cfg.static:
+            predicted[:v] = torch.where(kinematic[:v, None], target[:v], ctx.x_hat)
+        cover = self.contact.cover(X, predicted, ctx.kinematic, ctx.x_rest, self.candidate_margin)
+        searches = 1
+        pairs = self.contact.swept(X, torch.zeros_like(X), cover)
+        timer.stop("broad_phase")
+        self._check_separated(X, pairs, b0)
+        if cfg.friction > 0.0 and not cfg.static:
+            timer.start()
+            ctx = ctx._replace(friction=self.contact.lagged_friction(X, pairs, ctx.kappa))
+            timer.stop("friction")
+
+        loop = self.loop
+        loop.begin(X, target, ctx, cover, pairs)
+        converged = False
+        stalled = False
+        iterations = 0
+        while iterations < cfg.max_newton_iterations:
+            iterations += 1
+            timer.start()
+            assembled = loop.assemble()
+            timer.stop("assemble")
+            for checked in (False, True):
+                if checked:  # the factorisation failed: grow the pattern now, then again, waiting on each
+                    timer.start()
+                    assembled = loop.complete(assembled)
+                    timer.stop("assemble")
+                timer.start()
+                loop.solve(assembled, wait=checked)
+                timer.stop("solve")
+                read = loop.look(assembled, timer)
+                if not self.linear.solved():
+                    continue
+                if read.missing:  # blocks outside the pattern, bounded on the diagonal: grow it next step
+                    loop.defer(assembled)
+                break
+            if read.overflow:  # more active contacts than the buffers hold: the same iteration with larger ones
+                iterations -= 1
+                continue
+            if read.reached and read.step / dt < cfg.newton_tolerance:
+                converged = True
+                break
+            if not read.covered:  # the sweep left the candidates' reach: search along it
+                timer.start()
+                X = loop.positions()
+                cover = self.contact.cover(X, X + loop.direction(), ctx.kinematic, ctx.x_rest, self.candidate_margin)
+                searches += 1
+                loop.set_cover(cover)
+                timer.stop("broad_phase")
+                read = loop.look(assembled, timer)
+            alpha = read.alpha
+            if read.reached:
+                # backtrack from the CCD bound on E; every trial lies on the sweep, whose candidates hold its contacts
+                while alpha > 1e-12 and not read.trial_energy <= read.energy:
+                    alpha *= 0.5
+                    read = read._replace(trial_energy=loop.trial_energy(alpha, timer))
+            if alpha <= 1e-12:
+                stalled = True
+                break
+            loop.accept(snap=alpha == 1.0 and not read.reached)  # once reached, the kinematic vertices stay there
+
+        X = loop.positions().clone()
+        state_out.x = X[:v].clone()
+        state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
+        # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
+        near = self.contact.sweep_masks(X, torch.zeros_like(X), cover)
+        d_body, d_self, contacts = self.contact.min_distances(X, cover.pairs, near)
+        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
+
+    # -- parameter sensitivities ------------------------------------------------------------------------------
+
+    def sensitivity_step(
+        self,
+        state_in: ClothState,
+        state_out: ClothState,
+        control: ClothControl,
+        dt: float,
+        s_x: torch.Tensor,
+        s_v: torch.Tensor,
+        parameters: tuple[str, ...] = SENSITIVITY_PARAMETERS[1:],
+        exact_hessian: bool = True,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Carry the derivatives of the state with respect to material parameters through one step (Eq. 5).
+
+        Call it right after :meth:`step` with the same ``state_in`` (kept unchanged: pass a separate
+        ``state_out`` to the step), ``control`` and ``dt``, and with the step's result as ``state_out``. The end
+        state ``x⁺`` is a minimiser of the incremental potential ``E(x⁺; x, v, θ)``, so on the free vertices
+        ``∇E(x⁺) = 0``; differentiating that identity with respect to ``θ`` (implicit function theorem) gives,
+        with ``S = ∂x/∂θ`` and ``S_v = ∂v/∂θ`` at the start of the step,
+
+        ``H S⁺ = M (S + Δt S_v) + Δt² H_D S − ∂_θ ∇E``  on the free DOFs,  ``S⁺ = 0`` on Dirichlet DOFs,
+        ``S_v⁺ = (S⁺ − S) / Δt``,
+
+        where ``H`` is the Hessian of ``E`` at ``x⁺`` (inertia, membrane, bending, barrier and friction, without
+        the PSD projection of the Newton solve unless ``exact_hessian`` is False: the implicit function theorem
+        needs the true Hessian, which at a minimiser is positive definite as a whole even where single elements
+        are not), ``H_D`` the friction Hessian (friction depends on the displacement ``x⁺ − x`` of the step, hence
+        the ``S`` term) and ``∂_θ ∇E`` the explicit derivative of the gradient:
+
+        * ``κ_s``: ``Δt² ∇Ψ_s / κ_s`` (the membrane is linear in ``κ_s``);
+        * ``κ_b``: ``Δt² ∇Ψ_b / κ_b`` (the bending is linear in ``κ_b``);
+        * ``ρ``: ``(M (x⁺ − x̂) + Δt² (κ∇B + ∇D)) / ρ``: the inertia (gravity included) is linear in ``ρ``, and so
+          are barrier and friction while :attr:`ClothConfig.barrier_stiffness` is ``None`` (``κ ∝`` mean mass);
+          with a fixed barrier stiffness only the inertia term remains.
+
+        In a static solve there is no inertia or friction: ``H S⁺ = −∂_θ ∇E`` and ``S_v⁺ = 0``.
+
+        Approximations, all of the simulator's own model: friction's lagged quantities (normal forces, contact
+        normals and closest-point weights, evaluated at the start of the step) are held constant; the contact
+        set is that of ``x⁺``; the body and the Dirichlet targets do not depend on ``θ``. The identity holds at
+        an exact minimiser, so the sensitivities are as accurate as the step's Newton tolerance allows. Cost:
+        one assembly and one sparse factorisation (direct solver; one CG solve per parameter on CUDA) per step.
+
+        Args:
+            state_in: garment state at the start of the step.
+            state_out: the state :meth:`step` returned.
+            control: the step's control.
+            dt: the step's size, s.
+            s_x: ``[V, 3, P]`` ``∂x/∂θ`` at the start of the step, m per parameter unit.
+            s_v: ``[V, 3, P]`` ``∂v/∂θ`` at the start of the step, m/s per parameter unit.
+            parameters: the ``P`` parameters, in the order of the last axis, from :data:`SENSITIVITY_PARAMETERS`
+                (``"density"`` in kg/m³, ``"kappa_s"``, ``"kappa_b"``).
+            exact_hessian: solve with the exact Hessian (True) or the PSD-projected one of the Newton solve.
+
+        Returns:
+            ``(s_x_out [V, 3, P], s_v_out [V, 3, P])`` at the end of the step.
+
+        Raises:
+            ValueError: malformed inputs or unknown parameter names.
+        """
+        with backend.one_torch_thread_on_cpu():
+            return self._sensitivity_step(state_in, state_out, control, dt, s_x, s_v, tuple(parameters), exact_hessian)
+
+    def _sensitivity_step(self, state_in, state_out, control, dt, s_x, s_v, parameters, exact_hessian):
+        cfg = self.config
+        v, nb = self.vertex_count, self.body_vertex_count
+        unknown = [name for name in parameters if name not in SENSITIVITY_PARAMETERS]
+        if unknown or not parameters or len(set(parameters)) != len(parameters):
+            raise ValueError(
+                f"parameters {parameters} must be distinct names from {SENSITIVITY_PARAMETERS}, at least one"
+            )
+        count = len(parameters)
+        X_start, X, ctx = self._context(state_in, control, dt)  # X: the targets, body at the end of the step
+        device = X.device
+        for name, t in (("s_x", s_x), ("s_v", s_v)):
+            if tuple(t.shape) != (v, 3, count):
+                raise ValueError(
+                    f"{name} must have shape [{v}, 3, {count}] (vertices, xyz, parameters), got {list(t.shape)}"
+                )
+        if tuple(state_out.x.shape) != (v, 3):
+            raise ValueError(f"state_out.x must have shape [{v}, 3], got {list(state_out.x.shape)}")
+        X[:v] = torch.where(ctx.kinematic[:v, None], X[:v], state_out.x.to(device, F64))
+        s_x = s_x.to(device, F64)
+        s_v = s_v.to(device, F64)
+        dynamic = not cfg.static
+        if cfg.friction > 0.0 and dynamic:
+            pairs_start = self.contact.broad_phase(X_start, torch.zeros_like(X_start), ctx.kinematic, ctx.x_rest)
+            ctx = ctx._replace(friction=self.contact.lagged_friction(X_start, pairs_start, ctx.kappa))
+        pairs = self.contact.broad_phase(X, torch.zeros_like(X), ctx.kinematic, ctx.x_rest)
+        parts: dict[str, torch.Tensor] = {}
+        near = self.contact.near(X, pairs)
+        _, grad, elements = self.potential.evaluate(X, near, ctx, project=not exact_hessian, parts=parts)
+        matrix, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
+
+        rhs = X.new_zeros(v + nb, 3, count)
+        if dynamic:
+            rhs[:v] = self.potential.mass[:, None, None] * (s_x + dt * s_v)
+            friction = ctx.friction
+            if friction is not None and friction.index.shape[0]:
+                _, _, f_hess = friction_potential(X - X_start, friction, cfg.friction_velocity * dt, True)
+                s_all = torch.cat([s_x, s_x.new_zeros(nb, 3, count)])
+                k = friction.index.shape[0]
+                coupled = torch.bmm(dt * dt * f_hess, s_all[friction.index].reshape(k, 12, count))
+                rhs.index_add_(0, friction.index.reshape(-1), coupled.reshape(k * 4, 3, count))
+        zero = torch.zeros_like(X)
+        for j, name in enumerate(parameters):
+            if name == "kappa_s":
+                explicit = parts.get("membrane", zero) / cfg.kappa_s
+            elif name == "kappa_b":
+                explicit = parts.get("bending", zero) / cfg.kappa_b
+            else:
+                explicit = parts.get("inertia", zero)
+                if cfg.barrier_stiffness is None:
+                    explicit = explicit + parts.get("contact", zero) + parts.get("friction", zero)
+                explicit = explicit / cfg.density
+            rhs[:, :, j] -= explicit
+        free = ctx.free
+        solution = self.linear.solve(matrix, rhs[free].reshape(-1, count))
+        s_x_out = s_x.new_zeros(v, 3, count)
+        s_x_out[free] = solution.view(-1, 3, count)
+        s_v_out = (s_x_out - s_x) / dt if dynamic else torch.zeros_like(s_x_out)
+        return s_x_out, s_v_out
+
+    # -- pieces of a step -------------------------------------------------------------------------------------
+
+    def _check_step(self, state_in: ClothState, control: ClothControl, dt: float):
+        device = backend.torch_device()
+        v, nb = self.vertex_count, self.body_vertex_count
+        if not (math.isfinite(dt) and dt > 0.0):
+            raise ValueError(f"dt ({dt}) must be a positive number of seconds (paper: 0.04)")
+        for name, t in (("state_in.x", state_in.x), ("state_in.v", state_in.v)):
+            if tuple(t.shape) != (v, 3):
+                raise ValueError(f"{name} must have shape [{v}, 3], got {list(t.shape)}")
+        for name, t in (("control.body_start", control.body_start), ("control.body_end", control.body_end)):
+            if tuple(t.shape) != (nb, 3):
+                raise ValueError(f"{name} must have shape [{nb}, 3] (the body mesh's vertices), got {list(t.shape)}")
+        fixed = control.boundary_index.to(device).long()
+        if fixed.dim() != 1 or tuple(control.boundary_target.shape) != (fixed.numel(), 3):
+            raise ValueError("boundary_index must be [D] and boundary_target [D, 3]")
+        if self.config.static and fixed.numel() == 0:
+            raise ValueError(
+                "a static solve needs boundary vertices: with boundary_index empty the garment has no equilibrium "
+                "under gravity; pin the vertices attached to the body (e.g. the shoulder region)"
+            )
+        x = state_in.x.to(device, F64).contiguous()
+        # the checks of values, in one read from the device
+        checks = [torch.isfinite(x).all(), torch.isfinite(state_in.v.to(device)).all()]
+        if fixed.numel():
+            ordered = fixed.sort().values
+            checks += [(ordered[0] >= 0) & (ordered[-1] < v), (ordered[1:] != ordered[:-1]).all()]
+        finite_x, finite_v, *index = torch.stack(checks).tolist()
+        for name, finite in (("state_in.x", finite_x), ("state_in.v", finite_v)):
+            if not finite:
+                raise ValueError(f"{name} holds NaN or inf values")
+        if index and not index[0]:
+            raise ValueError(f"boundary_index must index garment vertices 0..{v - 1}")
+        if index and not index[1]:
+            raise ValueError("boundary_index holds repeated vertices; pass each Dirichlet vertex once")
+        b0 = control.body_start.to(device, F64).contiguous()
+        b1 = control.body_end.to(device, F64).contiguous()
+        return x, b0, b1, fixed, control.boundary_target.to(device, F64)
+
+    def _check_separated(self, X: torch.Tensor, pairs: ContactPairs, b0: torch.Tensor) -> None:
+        """Refuse a start state that touches the body or lies inside it (the barrier needs a positive gap)."""
+        v = self.vertex_count
+        if not self._checked_inside and self.contact.body_faces.numel():
+            inside = MeshBVH(b0, self.contact.body_faces - v, winding_numbers=True).inside(X[:v])
+            if bool(inside.any()):
+                raise ValueError(
+                    f"{int(inside.sum())} garment vertices start inside the body collider (e.g. vertex "
+                    f"{int(inside.nonzero()[0])}); place the garment outside the body, at least d̂ away"
+                )
+            self._checked_inside = True
+        d_body, d_self, _ = self.contact.min_distances(X, pairs)
+        if not (d_body > 0.0 and d_self > 0.0):
+            raise ValueError(
+                "the garment touches or intersects "
+                + ("the body" if not d_body > 0.0 else "itself")
+                + " at the start of the step; start from an intersection-free state"
+            )
+
+    def _assemble(self, elements: list[NewtonElement], grad: torch.Tensor, p_kin: torch.Tensor, ctx: StepContext):
+        """The Newton matrix of the free DOFs and the right-hand side ``−g_f − H_fk p_k`` (``[n, 3]``).
+
+        ``p_kin`` is zero on the free vertices: the blocks that join a free vertex to a kinematic one push
+        ``H_fk p_k`` to the right-hand side, the others land in the matrix (:mod:`kernels.assembly`).
+        """
+        mass = self.potential.inertia_diagonal(ctx.free)
+        return self.matrices.assemble(elements, -grad[ctx.free], ctx.dof, p_kin, mass)
