@@ -48,6 +48,7 @@ __all__ = [
     "to_torch",
     "to_warp",
     "torch_device",
+    "load_warp_modules",
     "warp_arg",
     "warp_device",
 ]
@@ -183,6 +184,16 @@ def torch_device() -> torch.device:
 def warp_device() -> str:
     """The Warp device name matching the initialised backend (``"cpu"`` or ``"cuda:0"``)."""
     return "cuda:0" if _require_init() == "cuda" else "cpu"
+
+
+def load_warp_modules(*modules) -> None:
+    """Build (or load from Warp's kernel cache) the Warp kernels of these Python modules now, on the backend's
+    device, rather than at their first launch: a solver whose kernels first launch mid-run (at the first contact,
+    say) would otherwise stall there while an empty cache compiles them."""
+    import warp as wp
+
+    for module in modules:
+        wp.load_module(module, device=warp_device())
 
 
 def synchronize() -> None:

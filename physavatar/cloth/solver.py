@@ -15,7 +15,8 @@ from dataclasses import dataclass, field
 
 import torch
 
-from kernels import backend
+from kernels import backend, ccd, ipc_barrier, shell
+from kernels import contact as contact_kernels
 from kernels.raycast import MeshBVH
 from physavatar.cloth.config import ClothConfig
 from physavatar.cloth.contact import ClothContact, ContactPairs, friction_potential
@@ -120,6 +121,8 @@ class SolverCloth:
                 raise ValueError(f"{name} must be an integer [F, 3] tensor, got {f.dtype} {tuple(f.shape)}")
         if faces.shape[0] == 0 or int(faces.min()) < 0 or int(faces.max()) >= vertices.shape[0]:
             raise ValueError("faces must be non-empty and index the garment vertices")
+        # the garment's kernels are built now, not at the first contact (each kernel module builds at its first launch)
+        backend.load_warp_modules(shell, ipc_barrier, contact_kernels, ccd)
         self.config = config
         self.vertex_count = vertices.shape[0]
         self.body_vertex_count = int(body_faces.max()) + 1 if body_faces.numel() else 0
