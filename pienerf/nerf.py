@@ -29,6 +29,7 @@ step to choose, and agree with autograd to O(h²) inside a cell (``tests/pienerf
 
 from __future__ import annotations
 
+import copy
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -211,11 +212,14 @@ class NGPField(torch.nn.Module):
         lo, hi = self.aabb[0].to(x), self.aabb[1].to(x)
         return (x - lo) / (hi - lo)
 
-    def _density_outputs(self, x: torch.Tensor, differentiable_in_x: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    def _density_outputs(
+        self, x: torch.Tensor, differentiable_in_x: bool = False, density_mlp: torch.nn.Module | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """σ ``[N]`` (per metre, 0 outside the box) and the density MLP's outputs ``h`` ``[N, 1 + geometric]``.
 
         ``differentiable_in_x`` encodes with the torch reference (differentiable in ``x``, any float dtype)
-        instead of the float32 kernels.
+        instead of the float32 kernels. ``density_mlp``: evaluate this copy of the density MLP instead (see
+        :meth:`radiance`).
         """
         if differentiable_in_x:
             unit = self.to_unit_cube(x)
@@ -223,7 +227,10 @@ class NGPField(torch.nn.Module):
         else:
             unit = self.to_unit_cube(x.detach().float())
             features = self.encoding(unit.contiguous())
-        h = self.density_mlp(features)
+        if density_mlp is None:
+            h = self.density_mlp(features)
+        else:  # a copy, maybe of another dtype (float16): its inputs in its own
+            h = density_mlp(features.to(next(density_mlp.parameters()).dtype))
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
         # At least float32: under float16 autocast the MLP's outputs are float16, whose exp overflows at σ ≈ 6.5e4.
         sigma = torch.where(inside, truncated_exp(h[:, 0].to(torch.promote_types(h.dtype, torch.float32))), 0.0)
@@ -246,11 +253,26 @@ class NGPField(torch.nn.Module):
         """
         return spherical_harmonics(d, self.config.sh_degree)
 
-    def radiance(self, x: torch.Tensor, encoded_directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """:meth:`forward` with the directions already encoded by :meth:`encode_directions` (``[N, sh_degree²]``)."""
-        sigma, h = self._density_outputs(x)
-        rgb = self.color_mlp(torch.cat([h, encoded_directions.to(h.dtype)], dim=-1))
+    def radiance(
+        self,
+        x: torch.Tensor,
+        encoded_directions: torch.Tensor,
+        mlps: tuple[torch.nn.Module, torch.nn.Module] | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`forward` with the directions already encoded by :meth:`encode_directions` (``[N, sh_degree²]``).
+
+        ``mlps``: ``(density, colour)`` copies of the MLPs to evaluate instead of the field's own, e.g. a renderer's
+        float16 ones (:meth:`half_mlps`), which spare float16 autocast a cast of every weight at every call.
+        """
+        density_mlp, color_mlp = mlps if mlps is not None else (self.density_mlp, self.color_mlp)
+        sigma, h = self._density_outputs(x, density_mlp=density_mlp)
+        rgb = color_mlp(torch.cat([h, encoded_directions.to(h.dtype)], dim=-1))
         return sigma, rgb
+
+    def half_mlps(self) -> tuple[torch.nn.Module, torch.nn.Module]:
+        """Float16 copies ``(density, colour)`` of the MLPs, without gradients, for :meth:`radiance` (copies: they do
+        not follow later training)."""
+        return tuple(copy.deepcopy(mlp).half().requires_grad_(False) for mlp in (self.density_mlp, self.color_mlp))
 
 
 class OccupancyGrid(torch.nn.Module):

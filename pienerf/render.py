@@ -253,10 +253,22 @@ class DeformedFrame:
     occupancy: torch.Tensor
 
 
-def _compact(mask: torch.Tensor, count: int) -> torch.Tensor:
-    """int64 ``[count]`` indices of the True entries of ``mask [N]``, ascending, where ``count`` is their number
-    (known already): unlike ``nonzero`` this needs no host sync on CUDA."""
-    return torch.nonzero_static(mask, size=count).view(-1)
+def _compact(mask: torch.Tensor, count: int, size: int | None = None) -> torch.Tensor:
+    """int64 ``[size]`` indices of the True entries of ``mask [N]``, ascending, where ``count`` is their number
+    (known already): unlike ``nonzero`` this needs no host sync on CUDA. ``size`` (≥ count, default count) pads
+    with index 0."""
+    return torch.nonzero_static(mask, size=count if size is None else size, fill_value=0).view(-1)
+
+
+def _bucket(count: int) -> int:
+    """``count`` rounded up to one of 8 sizes an octave (at most an eighth more, multiples of 128).
+
+    The field's matrix products then see few shapes however a round's sample count varies from frame to frame:
+    cuBLAS chooses its kernel per new shape on the host (about 0.1 ms a product), which cost a 640 × 480 viewer
+    frame ~5 ms of host time on an H100.
+    """
+    step = max(128, 1 << max(count.bit_length() - 4, 0))
+    return -(-count // step) * step
 
 
 @dataclass
@@ -354,6 +366,7 @@ class DeformedRenderer:
         if half_precision is None:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
+        self._half_copies, self._half_versions = None, None  # float16 MLPs and the field's versions they copy
         self.framework = backend.check_framework(framework)
         self._rest_occupancy = grid.occupied.to(device=device, dtype=torch.uint8).contiguous()
         self._rest_aabb = grid.aabb.detach().float().cpu()
@@ -373,6 +386,14 @@ class DeformedRenderer:
         rest_hash = SpatialHash(self.ip_rest.float().contiguous(), self._cutoff_median)
         nearest, _ = rest_hash.knn(centres, 1, max_radius=float(torch.linalg.vector_norm(grid.aabb[1] - grid.aabb[0])))
         self._cell_ip = nearest[:, 0].long()
+
+    def _half_mlps(self):
+        """The field's MLPs in float16 (:meth:`pienerf.nerf.NGPField.half_mlps`), copied again whenever training
+        has changed the field's own since the last copy."""
+        versions = tuple(p._version for mlp in (self.field.density_mlp, self.field.color_mlp) for p in mlp.parameters())
+        if self._half_versions != versions:
+            self._half_copies, self._half_versions = self.field.half_mlps(), versions
+        return self._half_copies
 
     def _precision(self):
         """The context the field's queries run in: float16 autocast with :attr:`half_precision`."""
@@ -566,11 +587,18 @@ class DeformedRenderer:
         (Querying every marched sample with σ zeroed instead saves the count but not the time:
         ``docs/benchmarks.md``.)
         """
-        index = _compact(keep, kept)  # the kept samples' slots of the round's [A · k], in ray order
+        # the kept samples' slots of the round's [A · k], in ray order, padded to a bucketed count (_bucket)
+        padded = _compact(keep, kept, _bucket(kept) if rest.is_cuda else kept)
+        index = padded[:kept]
         offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
         offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
         with self._precision():
-            sigma, rgb = self.field.radiance(rest[index], gather_ray_rows(encoded, rays, index, k))
+            query = (rest[padded], gather_ray_rows(encoded, rays, padded, k))
+            if self.half_precision and isinstance(self.field, NGPField):
+                sigma, rgb = self.field.radiance(*query, mlps=self._half_mlps())
+            else:
+                sigma, rgb = self.field.radiance(*query)
+        sigma, rgb = sigma[:kept], rgb[:kept]
         composite_accumulate(
             sums,
             rays,

@@ -446,3 +446,20 @@ def test_simulation_of_a_nerf_checkpoint_samples_its_solid(device, teapot_nerf):
     assert sim.render_backends["nerf"].model is sim.model is not before, "the NeRF warp follows a re-sampling"
     frame = sim.render(orbit_cameras(sim.centre, 2.0, [0.0], 20.0, 24, 16), 0, "nerf")
     assert float(frame.rgba[..., 3].max()) > 0.9
+
+
+def test_radiance_with_float16_mlp_copies_matches_the_field(device):
+    """A renderer's float16 copies of the MLPs (half_mlps) give the field's own radiance to float16 precision, and
+    stay copies: the field's parameters keep their dtype and gradients."""
+    field = _field(table_scale=0.5)
+    generator = torch.Generator().manual_seed(2)
+    x = (torch.rand(512, 3, generator=generator) * 1.8 - 0.9).to(backend.torch_device())
+    d = torch.nn.functional.normalize(torch.randn(512, 3, generator=generator), dim=-1).to(x.device)
+    encoded = field.encode_directions(d)
+    mlps = field.half_mlps()
+    assert all(p.dtype == torch.float16 and not p.requires_grad for mlp in mlps for p in mlp.parameters())
+    sigma, rgb = field.radiance(x, encoded, mlps=mlps)
+    sigma_ref, rgb_ref = field.radiance(x, encoded)
+    torch.testing.assert_close(rgb.float(), rgb_ref, rtol=0, atol=5e-3)
+    torch.testing.assert_close(sigma.float(), sigma_ref, rtol=2e-2, atol=1e-3)
+    assert all(p.dtype == torch.float32 and p.requires_grad for p in field.parameters() if p.dim() > 1)

@@ -297,3 +297,15 @@ def test_bad_arguments_raise_clear_errors(teapot):
         GroundPlane(light_direction=(0.0, -1.0, 0.0))
     with pytest.raises(ValueError, match="cutoff_scale must be positive"):
         DeformedRenderer(field, renderer.grid, model, cutoff_scale=0.0)
+
+
+def test_bucketed_sample_counts_are_few_and_close():
+    """The sample count a round queries is padded to one of 8 sizes an octave: never below the count, at most an
+    eighth (or 128) above it, so the field's products see few shapes."""
+    from pienerf.render import _bucket
+
+    counts = list(range(1, 5000)) + [10**5 + 7, 2**20 - 1, 2**20, 3 * 10**6 + 11]
+    for count in counts:
+        padded = _bucket(count)
+        assert count <= padded <= max(count + 127, count * 9 // 8 + 1), (count, padded)
+    assert len({_bucket(c) for c in range(2**16, 2**17)}) <= 9
