@@ -416,7 +416,7 @@ class SolverQGMLS:
         damping_K = None
         q = q_n.clone()
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
-        alpha, beta = config.rayleigh_alpha, config.rayleigh_beta
+        beta = config.rayleigh_beta
         spring_H = self._spring_terms(control.springs, q, hessian=True)[2]  # constant: springs are quadratic
 
         def total_energy(x: torch.Tensor, elastic: torch.Tensor) -> torch.Tensor:
@@ -434,21 +434,9 @@ class SolverQGMLS:
                 damping_K = elastic.hessian.clone()  # K(q_n): Newton starts at q_n
             contact_E, contact_g, contact_H = self._contact_terms(control.colliders, q, hessian=fresh)
             spring_E, spring_g, _ = self._spring_terms(control.springs, q, hessian=False)
-            dx_hat, dx = q - q_hat, q - q_n
-            grad = inv_h2 * (self.mass @ dx_hat) + elastic.gradient - f_ext + contact_g + spring_g
-            if alpha:
-                grad = grad + alpha * inv_h * (self.mass @ dx)
-            if damping_K is not None:
-                grad = grad + beta * inv_h * (damping_K @ dx.reshape(-1)).view_as(q)
-            if fresh:
-                H = elastic.hessian
-                H.add_(self.mass_flat, alpha=inv_h2 + alpha * inv_h)
-                if damping_K is not None:
-                    H.add_(damping_K, alpha=beta * inv_h)
-                if spring_H is not None:
-                    H += spring_H
-                if contact_H is not None:
-                    H += contact_H
+            grad, H = self._newton_system(
+                q, q_hat, q_n, inv_h2, inv_h, f_ext, elastic, damping_K, (contact_g, spring_g), (spring_H, contact_H)
+            )
             backend.synchronize()
             report.time_assembly += time.perf_counter() - clock
 
@@ -498,6 +486,29 @@ class SolverQGMLS:
         state_out.time = state_in.time + dt
         report.time_other += time.perf_counter() - clock
         return report
+
+    def _newton_system(self, q, q_hat, q_n, inv_h2, inv_h, f_ext, elastic, damping_K, gradients, hessians):
+        """The incremental potential's gradient at ``q`` and, where ``elastic`` carries the elastic Hessian, the
+        Newton matrix of Eq. 18, M/h² + αM/h + ∂²U/∂q² + βK/h + the ``hessians`` of springs and contacts (built in
+        the elastic Hessian's storage; ``None`` otherwise). ``gradients``: the springs' and contacts' gradients."""
+        alpha, beta = self.config.rayleigh_alpha, self.config.rayleigh_beta
+        dx_hat, dx = q - q_hat, q - q_n
+        grad = inv_h2 * (self.mass @ dx_hat) + elastic.gradient - f_ext
+        for part in gradients:
+            grad = grad + part
+        if alpha:
+            grad = grad + alpha * inv_h * (self.mass @ dx)
+        if damping_K is not None:
+            grad = grad + beta * inv_h * (damping_K @ dx.reshape(-1)).view_as(q)
+        H = elastic.hessian
+        if H is not None:
+            H.add_(self.mass_flat, alpha=inv_h2 + alpha * inv_h)
+            if damping_K is not None:
+                H.add_(damping_K, alpha=beta * inv_h)
+            for part in hessians:
+                if part is not None:
+                    H += part
+        return grad, H
 
     # -- the device loop ----------------------------------------------------------------------
 
@@ -753,7 +764,7 @@ class _DeviceLoop:
         solver, config = self.solver, self.solver.config
         dt, integrator = self.dt, solver.integrator
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
-        alpha, beta = config.rayleigh_alpha, config.rayleigh_beta
+        beta = config.rayleigh_beta
         q_n = self.q_n
         q_hat = q_n + dt * self.v_n
         f_ext = solver.gravity_force.clone()
@@ -778,20 +789,10 @@ class _DeviceLoop:
                 damping_K = elastic.hessian.clone()
             contact_E, contact_g, contact_H = self._contacts(q, True, fresh)
             spring_E, spring_g = self._springs(q, True)
-            dx_hat, dx = q - q_hat, q - q_n
-            grad = inv_h2 * (solver.mass @ dx_hat) + elastic.gradient - f_ext + contact_g + spring_g
-            if alpha:
-                grad = grad + alpha * inv_h * (solver.mass @ dx)
-            if damping_K is not None:
-                grad = grad + beta * inv_h * (damping_K @ dx.reshape(-1)).view_as(q)
+            grad, H = solver._newton_system(
+                q, q_hat, q_n, inv_h2, inv_h, f_ext, elastic, damping_K, (contact_g, spring_g), (spring_H, contact_H)
+            )
             if fresh:
-                H = elastic.hessian
-                H.add_(solver.mass_flat, alpha=inv_h2 + alpha * inv_h)
-                if damping_K is not None:
-                    H.add_(damping_K, alpha=beta * inv_h)
-                for part in (spring_H, contact_H):
-                    if part is not None:
-                        H += part
                 factor, info = torch.linalg.cholesky_ex(H)
                 redo = redo | (info != 0)  # the host loop shifts a singular matrix
                 if self.kept_factor is not None:
