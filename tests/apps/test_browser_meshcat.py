@@ -296,3 +296,37 @@ def test_meshcat_page_drags_a_leaf_of_the_default_plant(device):
         assert app.errors == []
     finally:
         app.viewer.close()
+
+
+@pytest.mark.skipif(
+    CHROMIUM is None and not os.environ.get("CI"),
+    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it",
+)
+def test_meshcat_page_folds_its_controls_in_a_small_window(device, tmp_path):
+    """At 640 × 480 the panel starts with its controls folded, so the middle of the view is the scene's; a press on
+    the toggle unfolds them."""
+    from playwright.sync_api import sync_playwright
+
+    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
+    app = build_app("plant", "meshcat", "127.0.0.1", free_port(), smoke=True, cache_dir=str(tmp_path))
+    try:
+        with sync_playwright() as playwright:
+            browser = playwright.chromium.launch(
+                executable_path=CHROMIUM,
+                headless=True,
+                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
+            )
+            page = browser.new_page(viewport={"width": 640, "height": 480})
+            page.goto(app.viewer.url)
+            loaded = lambda: page.evaluate("() => window.pienerf !== undefined && window.pienerf.stats.updates > 2")  # noqa: E731
+            assert _poll(page, app, loaded, 60.0), "the page did not receive the body"
+            box = page.evaluate("() => document.getElementById('panel').getBoundingClientRect().toJSON()")
+            assert box["bottom"] < 160, f"the folded panel reaches {box['bottom']} px down the 480 px window"
+            assert page.evaluate("() => document.elementFromPoint(320, 240).tagName") == "CANVAS"
+            assert not page.is_visible("#young_modulus")
+            page.click("#collapse")
+            assert page.is_visible("#young_modulus") and page.inner_text("#collapse") == "hide controls"
+            browser.close()
+        assert app.errors == []
+    finally:
+        app.viewer.close()

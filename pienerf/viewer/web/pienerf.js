@@ -225,6 +225,16 @@
     element(name).addEventListener("change", (event) => send({ type: "set", name, value: event.target.value }));
   }
   element("resample").addEventListener("click", () => send({ type: "resample", kernel_count: +element("kernel_count").value }));
+
+  // -- the panel: its controls fold away, and start folded in a small window, so that the body stays in view ----
+
+  const panel = element("panel");
+  function setCollapsed(collapsed) {
+    panel.classList.toggle("collapsed", collapsed);
+    element("collapse").textContent = collapsed ? "show controls" : "hide controls";
+  }
+  element("collapse").addEventListener("click", () => setCollapsed(!panel.classList.contains("collapsed")));
+  setCollapsed(window.innerWidth < 800);
   for (const name of ["pin", "push", "cut", "release", "reset"]) {
     element(name).addEventListener("click", () => send({ type: name }));
   }
