@@ -263,8 +263,7 @@ class SolverQGMLS:
     def _displacement_norm(self, dq: torch.Tensor) -> float:
         """Largest displacement |J(x_k) dq| over the integrator points (m): the Newton stopping measure,
         in metres whatever the DOF (values, gradients and second derivatives have different units)."""
-        shape = self.model.ip_shape
-        return float(torch.einsum("ks,ksa->ka", shape.value, dq[shape.index.clamp_min(0)]).abs().max())
+        return float(self._displacement_tensor(dq))
 
     # -- energies of the step ----------------------------------------------------------------
 
@@ -316,15 +315,22 @@ class SolverQGMLS:
         self._spring_cache = cache  # handles no longer used are let go
         return H
 
-    def _spring_terms(self, springs: list[PointTargets], q: torch.Tensor, hessian: bool):
-        energy = q.new_zeros(())
-        grad = torch.zeros_like(q)
-        for spring in springs:
-            h = spring.handle
-            r = h.positions(q) - spring.target
-            energy = energy + 0.5 * spring.stiffness * (r * r).sum()
-            self._point_gradient(grad, h.index, h.value, spring.stiffness * r)
+    def _spring_terms(self, springs: list[PointTargets], q: torch.Tensor, hessian: bool, gradient: bool = True):
+        """Energy, gradient (``None`` without ``gradient``) and Hessian (``None`` without ``hessian``) of the
+        springs at ``q``."""
+        energy, grad = self._spring_energy(q, ((s.handle, s.target, s.stiffness) for s in springs), gradient)
         return energy, grad, self._spring_hessian(springs) if hessian else None
+
+    def _spring_energy(self, q: torch.Tensor, springs, gradient: bool):
+        """Energy ½ k Σ|x − target|² and its gradient (``None`` without ``gradient``) of springs given as
+        ``(handle, target [M, 3], stiffness)`` (a number or a 0-d tensor: the device loop's buffers)."""
+        energy, grad = q.new_zeros(()), torch.zeros_like(q) if gradient else None
+        for handle, target, stiffness in springs:
+            r = handle.positions(q) - target
+            energy = energy + 0.5 * stiffness * (r * r).sum()
+            if gradient:
+                self._point_gradient(grad, handle.index, handle.value, stiffness * r)
+        return energy, grad
 
     def _contact_terms(self, colliders, q: torch.Tensor, hessian: bool):
         energy = q.new_zeros(())
@@ -337,14 +343,11 @@ class SolverQGMLS:
         for collider in colliders:
             if isinstance(collider, PlaneCollider):
                 normal = torch.tensor(collider.normal, dtype=q.dtype, device=q.device)
-                normal = normal / normal.norm()
-                phi = (x - torch.tensor(collider.point, dtype=q.dtype, device=q.device)) @ normal
-                normals = normal.expand_as(x)
+                point = torch.tensor(collider.point, dtype=q.dtype, device=q.device)
+                phi, normals = _collider_distance(PlaneCollider, x, point, normal / normal.norm())
             elif isinstance(collider, SphereCollider):
-                d = x - torch.tensor(collider.centre, dtype=q.dtype, device=q.device)
-                dist = d.norm(dim=1).clamp_min(1e-12)
-                phi = dist - collider.radius
-                normals = d / dist[:, None]
+                centre = torch.tensor(collider.centre, dtype=q.dtype, device=q.device)
+                phi, normals = _collider_distance(SphereCollider, x, centre, collider.radius)
             else:
                 raise TypeError(f"unknown collider {collider!r}; use PlaneCollider or SphereCollider")
             active = phi < 0
@@ -417,11 +420,11 @@ class SolverQGMLS:
         q = q_n.clone()
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
         beta = config.rayleigh_beta
-        spring_H = self._spring_terms(control.springs, q, hessian=True)[2]  # constant: springs are quadratic
+        spring_H = self._spring_hessian(control.springs)  # constant: springs are quadratic
 
         def total_energy(x: torch.Tensor, elastic: torch.Tensor) -> torch.Tensor:
             energy = self._incremental_energy(x, q_hat, q_n, inv_h, f_ext, damping_K, elastic)
-            energy = energy + self._spring_terms(control.springs, x, hessian=False)[0]
+            energy = energy + self._spring_terms(control.springs, x, hessian=False, gradient=False)[0]
             return energy + self._contact_terms(control.colliders, x, hessian=False)[0]
 
         report.time_other += time.perf_counter() - clock
@@ -518,17 +521,17 @@ class SolverQGMLS:
         loop = self._device_loop_for(control, float(dt))
         loop.load(state_in, control)
         reuse = loop.factor_age is not None and loop.factor_age < self.config.factor_reuse
-        q, qd, stats = loop.call_reuse() if reuse else loop.call()
-        iterations, energy, last_update, min_det, halvings, converged, redo, first_update = stats.tolist()  # one read
-        if reuse and not redo:
-            slow = halvings > 0 or (iterations > 1 and last_update > 0.5 ** (iterations - 1) * first_update)
-            if slow or (self.config.newton_tolerance > 0 and not converged):
+        q, qd, stats = _replay(loop.call_reuse if reuse else loop.call)
+        if reuse and not stats["redo"]:
+            iterations = stats["iterations"]
+            slow = stats["halvings"] > 0 or (
+                iterations > 1 and stats["last_update"] > 0.5 ** (iterations - 1) * stats["first_update"])
+            if slow or (self.config.newton_tolerance > 0 and not stats["converged"]):
                 # The kept factor no longer serves: this step is taken again with its own, which is then kept.
                 self.factor_refreshes += 1
                 reuse = False
-                q, qd, stats = loop.call()
-                iterations, energy, last_update, min_det, halvings, converged, redo, first_update = stats.tolist()
-        if redo:
+                q, qd, stats = _replay(loop.call)
+        if stats["redo"]:
             self.device_loop_redos += 1
             loop.factor_age = None
             return None
@@ -538,9 +541,9 @@ class SolverQGMLS:
         state_out.qd.copy_(qd)
         state_out.time = state_in.time + dt
         return StepReport(
-            iterations=int(iterations), energy=energy, last_update=last_update, min_det=min_det,
-            line_search_halvings=int(halvings), converged=bool(converged), device_loop=True, factor_reused=reuse,
-            time_device_loop=time.perf_counter() - clock,
+            iterations=int(stats["iterations"]), energy=stats["energy"], last_update=stats["last_update"],
+            min_det=stats["min_det"], line_search_halvings=int(stats["halvings"]), converged=bool(stats["converged"]),
+            device_loop=True, factor_reused=reuse, time_device_loop=time.perf_counter() - clock,
         )
 
     def _device_loop_for(self, control: ControlQGMLS, dt: float) -> _DeviceLoop:
@@ -561,7 +564,7 @@ class SolverQGMLS:
         return loop
 
     def _displacement_tensor(self, dq: torch.Tensor) -> torch.Tensor:
-        """:meth:`_displacement_norm` as a 0-d tensor, read by no one on the host."""
+        """:meth:`_displacement_norm` as a 0-d tensor, not read on the host (the device loop's)."""
         shape = self.model.ip_shape
         return torch.einsum("ks,ksa->ka", shape.value, dq[shape.index.clamp_min(0)]).abs().max()
 
@@ -632,7 +635,7 @@ class SolverQGMLS:
 
         def energy_at(x):
             elastic = self.integrator.evaluate(x, gradient=False, hessian=False, project=False)
-            return (elastic.energy - (f_ext * x).sum() + self._spring_terms(control.springs, x, False)[0]
+            return (elastic.energy - (f_ext * x).sum() + self._spring_terms(control.springs, x, False, False)[0]
                     + self._contact_terms(control.colliders, x, False)[0])
 
         update = float("inf")
@@ -722,14 +725,9 @@ class _DeviceLoop:
             buffer.copy_(values)
 
     def _springs(self, x: torch.Tensor, gradient: bool):
-        """Energy (and gradient) of the springs at ``x``."""
-        energy, grad = x.new_zeros(()), torch.zeros_like(x) if gradient else None
-        for k, (handle, target) in enumerate(zip(self.spring_handles, self.targets, strict=True)):
-            r = handle.positions(x) - target
-            energy = energy + 0.5 * self.stiffness[k] * (r * r).sum()
-            if gradient:
-                self.solver._point_gradient(grad, handle.index, handle.value, self.stiffness[k] * r)
-        return energy, grad
+        """Energy (and gradient) of the springs at ``x``, from the buffers."""
+        springs = zip(self.spring_handles, self.targets, self.stiffness.unbind(0), strict=True)
+        return self.solver._spring_energy(x, springs, gradient)
 
     def _contacts(self, x_q: torch.Tensor, gradient: bool, hessian: bool):
         """The collider penalty of :meth:`SolverQGMLS._contact_terms` over every particle, the ones not in contact
@@ -741,14 +739,7 @@ class _DeviceLoop:
         x = particles.positions(x_q)
         k = solver.contact_spring
         for kind, values in zip(self.collider_kinds, self.colliders, strict=True):
-            if kind is PlaneCollider:
-                phi = (x - values[:3]) @ values[3:]
-                normals = values[3:].expand_as(x)
-            else:
-                d = x - values[:3]
-                dist = d.norm(dim=1).clamp_min(1e-12)
-                phi = dist - values[3]
-                normals = d / dist[:, None]
+            phi, normals = _collider_distance(kind, x, values[:3], values[3:] if kind is PlaneCollider else values[3])
             depth = phi.clamp(max=0.0)
             energy = energy + 0.5 * (k * depth * depth).sum()
             if gradient:
@@ -831,9 +822,30 @@ class _DeviceLoop:
                 first_update = update
             done = done | (active & (~found | (update < config.newton_tolerance)))
         qd = (q - q_n) * inv_h
-        stats = torch.stack([iterations, energy_out, last_update, min_det, halvings.to(zero.dtype),
+        stats = torch.stack([iterations, energy_out, last_update, min_det, halvings.to(zero.dtype),  # _LOOP_STATS
                              (done & ~redo).to(zero.dtype), redo.to(zero.dtype), first_update])
         return q, qd, stats
+
+
+_LOOP_STATS = ("iterations", "energy", "last_update", "min_det", "halvings", "converged", "redo", "first_update")
+"""The device loop's statistics, in the order of its ``stats`` tensor."""
+
+
+def _replay(call) -> tuple[torch.Tensor, torch.Tensor, dict[str, float]]:
+    """Run a device loop's graph: q, q̇ and its statistics by name, read from the device at once (the step's read)."""
+    q, qd, stats = call()
+    return q, qd, dict(zip(_LOOP_STATS, stats.tolist(), strict=True))
+
+
+def _collider_distance(kind, x: torch.Tensor, a: torch.Tensor, b) -> tuple[torch.Tensor, torch.Tensor]:
+    """Signed distances ``[P]`` of points ``x [P, 3]`` to a collider and its outward unit normals ``[P, 3]``: for
+    :class:`PlaneCollider`, the plane through ``a [3]`` with unit normal ``b [3]``; for :class:`SphereCollider`, the
+    sphere of centre ``a [3]`` and radius ``b``."""
+    if kind is PlaneCollider:
+        return (x - a) @ b, b.expand_as(x)
+    d = x - a
+    dist = d.norm(dim=1).clamp_min(1e-12)
+    return dist - b, d / dist[:, None]
 
 
 def _pick(values: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
