@@ -6,17 +6,14 @@ chromium is absent, unless the environment variable CI is set: then it must run.
 
 from __future__ import annotations
 
-import os
-import shutil
 import threading
 
-import pytest
 import torch
 
 from pienerf.viewer import build_app
+from tests.apps import chromium
+from tests.apps.chromium import requires_chromium
 from tests.pienerf.viewer.test_loop import free_port
-
-CHROMIUM = shutil.which("chromium")
 
 
 def _poll(page, condition, seconds: float = 15.0) -> bool:
@@ -28,12 +25,10 @@ def _poll(page, condition, seconds: float = 15.0) -> bool:
     return condition()
 
 
-@pytest.mark.skipif(CHROMIUM is None and not os.environ.get("CI"),
-                    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it")
+@requires_chromium
 def test_click_and_drag_moves_the_body(device, tmp_path):
     from playwright.sync_api import sync_playwright
 
-    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
     app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
     sim = app.simulation
     drag = sim.interaction.drag
@@ -41,10 +36,7 @@ def test_click_and_drag_moves_the_body(device, tmp_path):
     loop.start()
     try:
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=CHROMIUM, headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
-            )
+            browser = chromium.launch(playwright)
             page = browser.new_page(viewport={"width": 800, "height": 600})
             page.goto(f"http://127.0.0.1:{app.viewer.port}")
             page.wait_for_selector("canvas", timeout=60_000)
@@ -93,21 +85,16 @@ def test_click_and_drag_moves_the_body(device, tmp_path):
         app.viewer.close()
 
 
-@pytest.mark.skipif(CHROMIUM is None and not os.environ.get("CI"),
-                    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it")
+@requires_chromium
 def test_viser_status_and_message_show_without_scrolling(device):
     from playwright.sync_api import sync_playwright
 
-    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
     app = build_app("plant", "viser", "127.0.0.1", free_port(), smoke=True)
     loop = threading.Thread(target=app.run, kwargs={"frame_seconds": 0.05}, daemon=True)
     loop.start()
     try:
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=CHROMIUM, headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
-            )
+            browser = chromium.launch(playwright)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
             page.goto(f"http://127.0.0.1:{app.viewer.port}")
             app.viewer.report("a message to find")

@@ -9,8 +9,6 @@ chromium is absent, unless the environment variable CI is set: then it must run.
 from __future__ import annotations
 
 import io
-import os
-import shutil
 import time
 
 import numpy as np
@@ -19,9 +17,10 @@ import torch
 from PIL import Image
 
 from pienerf.viewer import build_app
+from tests.apps import chromium
+from tests.apps.chromium import requires_chromium
 from tests.pienerf.viewer.test_loop import free_port
 
-CHROMIUM = shutil.which("chromium")
 WIDTH, HEIGHT = 1280, 800
 
 # A pixel whose ray hits the plant's mesh above the pot, found with the page's own camera and raycaster.
@@ -58,6 +57,16 @@ def _poll(page, app, condition, seconds: float = 15.0) -> bool:
     return condition()
 
 
+def _open_page(playwright, app, width: int, height: int):
+    """``(browser, page)``: the viewer's page in headless chromium at ``width × height``, once it has the body."""
+    browser = chromium.launch(playwright)
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.goto(app.viewer.url)
+    loaded = lambda: page.evaluate("() => window.pienerf !== undefined && window.pienerf.stats.updates > 2")  # noqa: E731
+    assert _poll(page, app, loaded, 60.0), "the page did not receive the body"
+    return browser, page
+
+
 def _stats(page) -> dict:
     return page.evaluate("() => ({...window.pienerf.stats, controls: null})")
 
@@ -77,29 +86,17 @@ def _rates(page, app, label: str) -> None:
     )
 
 
-@pytest.mark.skipif(
-    CHROMIUM is None and not os.environ.get("CI"),
-    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it",
-)
+@requires_chromium
 def test_meshcat_page_drags_sets_pins_resets_and_shows_the_nerf(device, tmp_path):
     from playwright.sync_api import sync_playwright
 
-    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
     app = build_app("plant", "meshcat", "127.0.0.1", free_port(), smoke=True, cache_dir=str(tmp_path))
     sim = app.simulation
     drag = sim.interaction.drag
     default_pins = len(sim.interaction.pins)
     try:
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=CHROMIUM,
-                headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
-            )
-            page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
-            page.goto(app.viewer.url)
-            loaded = lambda: page.evaluate("() => window.pienerf !== undefined && window.pienerf.stats.updates > 2")  # noqa: E731
-            assert _poll(page, app, loaded, 60.0), "the page did not receive the body"
+            browser, page = _open_page(playwright, app, WIDTH, HEIGHT)
             panel = page.evaluate("() => document.getElementById('panel').getBoundingClientRect().bottom")
             assert panel <= HEIGHT, f"the panel ends at {panel} px, below the {HEIGHT} px window"
             assert page.evaluate("() => document.scrollingElement.scrollHeight") <= HEIGHT
@@ -215,31 +212,19 @@ def _screen(page) -> np.ndarray:
     return np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB"), dtype=np.float32)
 
 
-@pytest.mark.skipif(
-    CHROMIUM is None and not os.environ.get("CI"),
-    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it",
-)
+@requires_chromium
 def test_meshcat_page_drags_a_leaf_of_the_default_plant(device):
     """The demo's first minute at its own size: the plant stands, a press on a leaf and a sideways drag pull the
     leaf half way to the pointer within 0.5 s of simulated time, and the page shows it move."""
     from playwright.sync_api import sync_playwright
 
-    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
     app = build_app("plant", "meshcat", "127.0.0.1", free_port(), smoke=False)
     sim = app.simulation
     drag = sim.interaction.drag
     centre = sim.centre.double()
     try:
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=CHROMIUM,
-                headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
-            )
-            page = browser.new_page(viewport={"width": WIDTH, "height": HEIGHT})
-            page.goto(app.viewer.url)
-            loaded = lambda: page.evaluate("() => window.pienerf !== undefined && window.pienerf.stats.updates > 2")  # noqa: E731
-            assert _poll(page, app, loaded, 60.0), "the page did not receive the body"
+            browser, page = _open_page(playwright, app, WIDTH, HEIGHT)
             found = page.evaluate(_FIND_LEAF_PIXEL, [float(centre[0]), float(centre[2])])
             assert found is not None, "no pixel of the view shows the plant above its pot"
             x, y, axis_x = found
@@ -298,28 +283,16 @@ def test_meshcat_page_drags_a_leaf_of_the_default_plant(device):
         app.viewer.close()
 
 
-@pytest.mark.skipif(
-    CHROMIUM is None and not os.environ.get("CI"),
-    reason="chromium is not installed (apt-get install -y chromium); set CI=1 to require it",
-)
+@requires_chromium
 def test_meshcat_page_folds_its_controls_in_a_small_window(device, tmp_path):
     """At 640 × 480 the panel starts with its controls folded, so the middle of the view is the scene's; a press on
     the toggle unfolds them."""
     from playwright.sync_api import sync_playwright
 
-    assert CHROMIUM is not None, "CI is set but chromium is missing: apt-get install -y chromium"
     app = build_app("plant", "meshcat", "127.0.0.1", free_port(), smoke=True, cache_dir=str(tmp_path))
     try:
         with sync_playwright() as playwright:
-            browser = playwright.chromium.launch(
-                executable_path=CHROMIUM,
-                headless=True,
-                args=["--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--no-sandbox"],
-            )
-            page = browser.new_page(viewport={"width": 640, "height": 480})
-            page.goto(app.viewer.url)
-            loaded = lambda: page.evaluate("() => window.pienerf !== undefined && window.pienerf.stats.updates > 2")  # noqa: E731
-            assert _poll(page, app, loaded, 60.0), "the page did not receive the body"
+            browser, page = _open_page(playwright, app, 640, 480)
             box = page.evaluate("() => document.getElementById('panel').getBoundingClientRect().toJSON()")
             assert box["bottom"] < 160, f"the folded panel reaches {box['bottom']} px down the 480 px window"
             assert page.evaluate("() => document.elementFromPoint(320, 240).tagName") == "CANVAS"
