@@ -39,6 +39,12 @@ def _deformed(model: QGMLSModel) -> torch.Tensor:
     return q.to(model.device)
 
 
+def _pin_and_tip(model: QGMLSModel):
+    """Handles of the box's pinned end (the particles within 3 cm of x = min) and of its far tip (one particle)."""
+    pin = model.handle(model.position[model.position[:, 0] < model.position[:, 0].min() + 0.03])
+    return pin, model.handle(model.position[model.position[:, 0].argmax()].unsqueeze(0))
+
+
 def _params(model: QGMLSModel) -> dict:
     return {**model.summary(), "material": "neo_hookean", "dtype": "float64"}
 
@@ -67,8 +73,7 @@ def _step_case(size: str, config: SolverConfig, name: str) -> Case:
     # the reference cannot be captured (its material response reads the device), so it runs the host loop
     reference = SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))
     reference.integrator.response = material_response_batched
-    pin = model.handle(model.position[model.position[:, 0] < model.position[:, 0].min() + 0.03])
-    tip = model.handle(model.position[model.position[:, 0].argmax()].unsqueeze(0))
+    pin, tip = _pin_and_tip(model)
     control = ControlQGMLS(springs=[
         PointTargets(pin, pin.rest.clone(), 1e6),
         PointTargets(tip, tip.rest + torch.tensor([[0.0, 0.05, 0.0]], dtype=torch.float64, device=model.device), 1e3),
@@ -116,8 +121,7 @@ def bench_qgmls_step_reuse(device: str, size: str) -> Case:
     in the viewer; the record gives the share of steps that reused a factor and the refreshes."""
     config = SolverConfig(newton_iterations=3, newton_tolerance=0.0, rayleigh_alpha=1.0, factor_reuse=8)
     model = _box_model(size)
-    pin = model.handle(model.position[model.position[:, 0] < model.position[:, 0].min() + 0.03])
-    tip = model.handle(model.position[model.position[:, 0].argmax()].unsqueeze(0))
+    pin, tip = _pin_and_tip(model)
     lift = torch.tensor([[0.0, 1e-3, 0.0]], dtype=torch.float64, device=model.device)
     solvers = {"run": SolverQGMLS(model, Material(), config),
                "reference": SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))}
