@@ -44,13 +44,16 @@ def gpu_peaks() -> dict | None:
     return next((peaks for key, peaks in GPU_PEAKS.items() if key in name), None)
 
 
-def time_repetitions(fn, reps: int, budget_s: float = math.inf) -> list[float]:
+def time_repetitions(fn, reps: int, budget_s: float = math.inf, after=None) -> list[float]:
     """Seconds of each of ``reps`` synchronised runs of ``fn`` after one warm-up run.
 
-    Stops early once ``budget_s`` is spent and at least three runs are timed.
+    Stops early once ``budget_s`` (which counts ``after`` too) is spent and at least three runs are timed.
+    ``after``, when given, is called untimed after every run, the warm-up included.
     """
     fn()
     backend.synchronize()
+    if after is not None:
+        after()
     times: list[float] = []
     start_all = time.perf_counter()
     for _ in range(reps):
@@ -58,6 +61,8 @@ def time_repetitions(fn, reps: int, budget_s: float = math.inf) -> list[float]:
         fn()
         backend.synchronize()
         times.append(time.perf_counter() - start)
+        if after is not None:
+            after()
         if len(times) >= 3 and time.perf_counter() - start_all > budget_s:
             break
     return times
@@ -65,7 +70,7 @@ def time_repetitions(fn, reps: int, budget_s: float = math.inf) -> list[float]:
 
 def measure(name: str, case: Case, device: str, size: str, reps: int) -> dict:
     """Time one prepared case and its reference; return the JSON record."""
-    times = time_repetitions(case.run, reps)
+    times = time_repetitions(case.run, reps, after=case.observe)
     median = statistics.median(times)
     record = {
         "workload": name,
@@ -84,6 +89,8 @@ def measure(name: str, case: Case, device: str, size: str, reps: int) -> dict:
         "speedup_vs_reference": None,
         **case.extra,
     }
+    if case.frame_seconds is not None:
+        record["realtime_factor"] = case.frame_seconds / median
     if case.reference is not None:
         ref_times = time_repetitions(case.reference, reps, budget_s=REFERENCE_BUDGET_S)
         record["reference_median_s"] = statistics.median(ref_times)

@@ -38,6 +38,10 @@ class Case:
             workload is not compute-bound.
         reference_name: what the reference is, for the table.
         extra: further figures to report (e.g. Newton iterations), written to the record.
+        frame_seconds: simulated time one repetition advances, s, for a simulation that steps frame by frame; the
+            record then carries ``realtime_factor = frame_seconds / median_s`` (above 1: faster than real time).
+        observe: untimed work after every repetition (warm-up included), e.g. measuring the result with the
+            project's own kernels into ``extra``; ``None`` when there is none.
     """
 
     run: Callable[[], object]
@@ -49,6 +53,8 @@ class Case:
     flops: float | None = None
     reference_name: str = "torch"
     extra: dict = field(default_factory=dict)
+    frame_seconds: float | None = None
+    observe: Callable[[], object] | None = None
 
 
 @dataclass(frozen=True)

@@ -16,14 +16,19 @@ what each change to the solver did to them, are on the measurements page ``docs/
 
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
+
 import torch
 
 from apps.workloads import Case, WorkloadUnavailable, workload
 from kernels import backend
 from kernels.element_terms import ElementTerms
 from kernels.reference import cloth as ref
+from kernels.shell import plane_stress_lame
 from physavatar.body import Body
-from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth
+from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth, bending_stiffness
+from physavatar.cloth.contact import garment_distances
 from physavatar.drive import BodyDriver
 from physavatar.garment import SHARED_GARMENTS, load_garment, place_on_body, select_boundary
 from physavatar.motion import walk
@@ -34,6 +39,23 @@ _SKIRT = {"smoke": "skirt1252.obj", "paper": "skirt7271.obj", "large": "skirt727
 # vertices per side of the square sheet
 _SIDE = {"smoke": 32, "paper": 224, "large": 224}
 _DT = 0.04
+_REACH = 1e-2
+"""Distances up to this (m) are measured exactly; the records say ``None`` where nothing came that close."""
+_PEERS_FIX = "pip install -e '.[peers]'"
+
+# Newton's settings, from its example ``cloth/example_cloth_poker_cards.py`` (SolverVBD, metres, a kinematic collider
+# and self-contact): substeps per frame and VBD iterations per substep, the particle radius (the contact thickness
+# against the body), the self-contact margin and detection gap, the topological contact filter, the soft-contact
+# penalty and damping and the collision pipeline's soft-contact gap.
+_NEWTON_SUBSTEPS = 20
+_NEWTON_ITERATIONS = 10
+_NEWTON_PARTICLE_RADIUS = 3e-3
+_NEWTON_SELF_CONTACT_MARGIN = 1e-3
+_NEWTON_SELF_CONTACT_GAP = 5e-4
+_NEWTON_TOPOLOGICAL_FILTER = 2
+_NEWTON_CONTACT_KE = 1e5
+_NEWTON_CONTACT_KD = 1e2
+_NEWTON_SOFT_CONTACT_GAP = 5e-3
 
 
 def _sheet(n: int, width: float, height: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -106,26 +128,71 @@ def bench_cloth_step_large(device: str, size: str) -> Case:
     )
 
 
+@dataclass(frozen=True)
+class _WalkingSkirt:
+    """The garment scene both ``cloth_step`` and ``cloth_step_newton`` run: a DiffCloth skirt on the walking
+    mannequin, its waistband driven by the skinning."""
+
+    path: object
+    faces: torch.Tensor  # [F, 3] garment triangles
+    body_faces: torch.Tensor  # [Fb, 3] mannequin triangles
+    x_rest: torch.Tensor  # [V, 3] garment rest positions, m
+    boundary: torch.Tensor  # [D] waist vertices
+    driver: BodyDriver
+
+    @staticmethod
+    def load(workload_name: str, size: str) -> _WalkingSkirt:
+        path = SHARED_GARMENTS / _SKIRT[size]
+        if not path.is_file():
+            raise WorkloadUnavailable(
+                f"{workload_name} needs the DiffCloth skirt {path.name}, absent from {SHARED_GARMENTS}; "
+                "put the project's shared data folder beside the checkout"
+            )
+        body = Body.mannequin(spacing=0.03)
+        garment = place_on_body(load_garment(path), body)
+        boundary = select_boundary(garment, body, mode="waist")
+        motion = walk(body.skeleton)
+        driver = BodyDriver.from_motion(body, motion, garment.vertices, boundary, motion.num_frames - 1)
+        return _WalkingSkirt(path, garment.faces, body.faces, garment.vertices, boundary, driver)
+
+    def params(self) -> dict:
+        return {
+            "garment": self.path.name,
+            "vertices": int(self.x_rest.shape[0]),
+            "faces": int(self.faces.shape[0]),
+            "body_faces": int(self.body_faces.shape[0]),
+            "motion": "walk",
+            "dt": self.driver.dt,
+        }
+
+    def distance_tracker(self, extra: dict):
+        """``observe(x, frame)``: measures garment positions ``x [V, 3]`` at ``frame`` with
+        :func:`~physavatar.cloth.contact.garment_distances` and keeps, in ``extra``, the smallest distances (m) and
+        the most vertices inside the body over the frames seen."""
+        seen = {"body": math.inf, "self": math.inf, "inside": 0}
+
+        def observe(x: torch.Tensor, frame: int) -> None:
+            d = garment_distances(x, self.faces, self.driver.body_frames[frame], self.body_faces, _REACH)
+            seen["body"], seen["self"] = min(seen["body"], d.body), min(seen["self"], d.garment)
+            seen["inside"] = max(seen["inside"], d.inside)
+            extra["min_distance_body"] = seen["body"] if math.isfinite(seen["body"]) else None
+            extra["min_distance_self"] = seen["self"] if math.isfinite(seen["self"]) else None
+            extra["vertices_inside_body"] = seen["inside"]
+
+        return observe
+
+
 @workload("cloth_step", "one Codim-IPC step of a skirt on the walking mannequin, contact on (frames/s)")
 def bench_cloth_step(device: str, size: str) -> Case:
-    path = SHARED_GARMENTS / _SKIRT[size]
-    if not path.is_file():
-        raise WorkloadUnavailable(
-            f"cloth_step needs the DiffCloth skirt {path.name}, absent from {SHARED_GARMENTS}; "
-            "put the project's shared data folder beside the checkout"
-        )
-    body = Body.mannequin(spacing=0.03)
-    garment = place_on_body(load_garment(path), body)
-    boundary = select_boundary(garment, body, mode="waist")
-    motion = walk(body.skeleton)
-    driver = BodyDriver.from_motion(body, motion, garment.vertices, boundary, motion.num_frames - 1)
-    driver = driver.to(backend.torch_device())
-    solver = SolverCloth(garment.vertices, garment.faces, ClothConfig(), body.faces)
+    scene = _WalkingSkirt.load("cloth_step", size)
+    driver = scene.driver.to(backend.torch_device())
+    solver = SolverCloth(scene.x_rest, scene.faces, ClothConfig(), scene.body_faces)
     state = solver.initial_state()
     frame = [0]
-    extra: dict = {"linear_solver": solver.linear_solver, "boundary_vertices": int(boundary.numel())}
+    extra: dict = {"linear_solver": solver.linear_solver, "boundary_vertices": int(scene.boundary.numel())}
     totals = dict.fromkeys(PHASES, 0.0)
     calls = [0]
+    track = scene.distance_tracker(extra)
 
     def run():
         t = frame[0]
@@ -149,15 +216,152 @@ def bench_cloth_step(device: str, size: str) -> Case:
     return Case(
         run=run,
         reference=None,  # the autograd element energies take minutes per step at this size (see cloth_step_large)
-        params={
-            "garment": path.name,
-            "vertices": int(garment.vertices.shape[0]),
-            "faces": int(garment.faces.shape[0]),
-            "body_faces": int(body.faces.shape[0]),
-            "motion": "walk",
-            "dt": driver.dt,
-        },
+        params=scene.params(),
         work=1.0,
         unit="frames/s",
         extra=extra,
+        frame_seconds=driver.dt,
+        observe=lambda: track(state.x, frame[0]),
+    )
+
+
+def _newton_membrane(config: ClothConfig) -> tuple[float, float, float]:
+    """Newton's ``(density, tri_ke, tri_ka)`` for the project's material (SI units).
+
+    Newton's density is per area: ``ρ h``, kg/m² (both lump a third of each triangle's mass on its vertices).
+    ``tri_ke``, ``tri_ka`` are the Lamé parameters of Newton's membrane (stable Neo-Hookean, Smith et al. 2018, whose
+    small-strain limit is the project's StVK) per unit area: the thickness-integrated plane-stress ``h μ``, ``h λ``
+    of ``E = κ_s E₀`` and ``ν`` (:func:`kernels.shell.plane_stress_lame`), N/m.
+    """
+    mu, lam = plane_stress_lame(config.young, config.poisson, config.thickness)
+    return config.density * config.thickness, mu, lam
+
+
+def _newton_hinge_stiffness(config: ClothConfig, x_rest: torch.Tensor, edge_indices: torch.Tensor) -> torch.Tensor:
+    """``[E]`` Newton's per-edge bending stiffness ``k_e`` (N) that gives each hinge the project's energy.
+
+    Newton's hinge energy is ``½ k_e ‖ē‖ (θ − θ̄)²``, the project's ``k w̄ (θ − θ̄)²`` with ``w̄ = 3‖ē‖²/Ā`` (``Ā``
+    the two rest triangle areas, ``k`` from :func:`~physavatar.cloth.bending_stiffness`), so ``k_e = 6 k ‖ē‖ / Ā``;
+    0 on boundary edges (no second triangle).
+
+    Args:
+        config: the project's material.
+        x_rest: ``[V, 3]`` rest positions, m.
+        edge_indices: ``[E, 4]`` Newton's bending edges: the two opposite vertices (``-1`` where missing), then the
+            edge's two ends.
+    """
+    e = edge_indices.long()
+    x = x_rest.to(torch.float64)
+    a, b = x[e[:, 2]], x[e[:, 3]]
+    o0, o1 = x[e[:, 0].clamp(min=0)], x[e[:, 1].clamp(min=0)]
+    area = 0.5 * (torch.linalg.cross(b - a, o0 - a).norm(dim=1) + torch.linalg.cross(b - a, o1 - a).norm(dim=1))
+    k_e = 6.0 * bending_stiffness(config) * (b - a).norm(dim=1) / area.clamp(min=1e-30)
+    return torch.where((e[:, 0] >= 0) & (e[:, 1] >= 0), k_e, torch.zeros_like(k_e))
+
+
+@workload("cloth_step_newton", "peer: Newton 1.8's SolverVBD on cloth_step's skirt and walk (frames/s)")
+def bench_cloth_step_newton(device: str, size: str) -> Case:
+    try:  # Newton is an optional peer (the 'peers' extra), imported only by this workload
+        import newton
+        import warp as wp
+    except ImportError as error:
+        raise WorkloadUnavailable(f"cloth_step_newton needs NVIDIA Newton 1.8 ({error}); {_PEERS_FIX}") from error
+    scene = _WalkingSkirt.load("cloth_step_newton", size)
+    config = ClothConfig()
+    wp_device = backend.warp_device()
+    torch_device = backend.torch_device()
+    driver = scene.driver.to(torch_device)
+    body_frames = driver.body_frames.to(torch.float32)
+    targets = driver.boundary_targets.to(torch.float32)
+    pinned = driver.boundary_index
+
+    builder = newton.ModelBuilder(up_axis=newton.Axis.Y, gravity=config.gravity)
+    density, tri_ke, tri_ka = _newton_membrane(config)
+    builder.add_cloth_mesh(
+        pos=wp.vec3(0.0, 0.0, 0.0),
+        rot=wp.quat_identity(),
+        scale=1.0,
+        vel=wp.vec3(0.0, 0.0, 0.0),
+        vertices=scene.x_rest.tolist(),
+        indices=scene.faces.reshape(-1).tolist(),
+        density=density,
+        tri_ke=tri_ke,
+        tri_ka=tri_ka,
+        tri_kd=0.0,  # the project's material has no damping (implicit Euler's own only)
+        edge_ke=1.0,  # replaced per edge below, once Newton has made its bending edges
+        edge_kd=0.0,
+        particle_radius=_NEWTON_PARTICLE_RADIUS,
+    )
+    body = newton.Mesh(body_frames[0].cpu().numpy(), scene.body_faces.reshape(-1).cpu().numpy(), compute_inertia=False)
+    builder.add_shape_mesh(body=-1, mesh=body, cfg=newton.ModelBuilder.ShapeConfig(mu=config.friction))
+    builder.color()
+    model = builder.finalize(device=wp_device)
+    hinge = _newton_hinge_stiffness(config, scene.x_rest, wp.to_torch(model.edge_indices).cpu())
+    wp.to_torch(model.edge_bending_properties)[:, 0] = hinge.to(torch_device, torch.float32)
+    model.soft_contact_ke = _NEWTON_CONTACT_KE
+    model.soft_contact_kd = _NEWTON_CONTACT_KD
+    model.soft_contact_mu = config.friction
+    flags = wp.to_torch(model.particle_flags)
+    flags[pinned] &= ~int(newton.ParticleFlags.ACTIVE)  # the waist is kinematic: positions written every substep
+    solver = newton.solvers.SolverVBD(
+        model,
+        iterations=_NEWTON_ITERATIONS,
+        particle_enable_self_contact=True,
+        particle_self_contact_margin=_NEWTON_SELF_CONTACT_MARGIN,
+        particle_self_contact_gap=_NEWTON_SELF_CONTACT_GAP,
+        particle_topological_contact_filter_threshold=_NEWTON_TOPOLOGICAL_FILTER,
+    )
+    collision = newton.CollisionPipeline(model, soft_contact_gap=_NEWTON_SOFT_CONTACT_GAP)
+    contacts = collision.contacts()
+    states = [model.state(), model.state()]
+    control = model.control()
+    # the body mesh's points and velocities and its box in the broad phase, moved by the skinning every substep
+    points, velocities = wp.to_torch(body.mesh.points), wp.to_torch(body.mesh.velocities)
+    box_lo, box_hi = wp.to_torch(model.shape_collision_aabb_lower), wp.to_torch(model.shape_collision_aabb_upper)
+    substep = driver.dt / _NEWTON_SUBSTEPS
+    frame = [0]
+    extra: dict = {
+        "boundary_vertices": int(pinned.numel()),
+        "substeps": _NEWTON_SUBSTEPS,
+        "iterations": _NEWTON_ITERATIONS,
+        "newton_version": newton.__version__,
+    }
+    track = scene.distance_tracker(extra)
+
+    def run():
+        t = frame[0]
+        if t + 1 >= driver.frames:  # the clip is over: start it again from the rest pose
+            states[0].particle_q.assign(model.particle_q)
+            states[0].particle_qd.zero_()
+            t = 0
+        b0, b1 = body_frames[t], body_frames[t + 1]
+        box_lo[0] = torch.minimum(b0.amin(0), b1.amin(0))
+        box_hi[0] = torch.maximum(b0.amax(0), b1.amax(0))
+        velocities.copy_((b1 - b0) / driver.dt)
+        solver.rebuild_bvh(states[0])
+        for k in range(1, _NEWTON_SUBSTEPS + 1):
+            s = k / _NEWTON_SUBSTEPS
+            points.copy_(torch.lerp(b0, b1, s))
+            body.mesh.refit()
+            waist = torch.lerp(targets[t], targets[t + 1], s)
+            for state in states:
+                wp.to_torch(state.particle_q)[pinned] = waist
+            states[0].clear_forces()
+            collision.collide(states[0], contacts)
+            solver.step(states[0], states[1], control, contacts, substep)
+            states.reverse()
+        frame[0] = t + 1
+        extra["frame"] = t + 1
+        return states[0].particle_q
+
+    return Case(
+        run=run,
+        reference=None,  # the peer is measured beside cloth_step, not against a reference of its own
+        params={**scene.params(), "simulator": "newton.solvers.SolverVBD", "particle_radius": _NEWTON_PARTICLE_RADIUS},
+        work=1.0,
+        unit="frames/s",
+        reference_name="-",
+        extra=extra,
+        frame_seconds=driver.dt,
+        observe=lambda: track(wp.to_torch(states[0].particle_q), frame[0]),
     )

@@ -19,6 +19,7 @@ from kernels import backend, ccd, ipc_barrier
 from kernels import contact as kernels_contact
 from kernels import friction as kernels_friction
 from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
+from kernels.raycast import MeshBVH
 from physavatar.cloth.config import ClothConfig
 
 __all__ = [
@@ -27,9 +28,11 @@ __all__ = [
     "ClothContact",
     "ContactCover",
     "ContactPairs",
+    "GarmentDistances",
     "LaggedFriction",
     "compact_rows",
     "friction_potential",
+    "garment_distances",
     "keep_pairs",
 ]
 
@@ -280,3 +283,61 @@ class ClothContact:
         contacts = (body < dhat2).sum() + (own < dhat2).sum()
         body, own, contacts = torch.stack([body.min(), own.min(), contacts.to(X.dtype)]).tolist()
         return math.sqrt(max(body, 0.0)), math.sqrt(max(own, 0.0)), int(contacts)
+
+
+class GarmentDistances(NamedTuple):
+    """How close a garment comes to a body and to itself (:func:`garment_distances`).
+
+    Attributes:
+        body: smallest garment–body distance, m; ``inf`` where nothing lies within the reach.
+        garment: smallest distance between garment primitives that share no vertex, m; ``inf`` likewise.
+        inside: garment vertices inside the closed body mesh (by its winding number).
+    """
+
+    body: float
+    garment: float
+    inside: int
+
+
+def garment_distances(
+    x: torch.Tensor, faces: torch.Tensor, body_x: torch.Tensor, body_faces: torch.Tensor, reach: float = 1e-2
+) -> GarmentDistances:
+    """Garment–body and garment–garment distances and the vertices inside the body, measured as the garment
+    simulator measures its own steps: the point–triangle and edge–edge pairs of :meth:`ClothContact.box_pairs`
+    (pairs that share a vertex left out), their distances by :mod:`kernels.ipc_barrier`
+    (:meth:`ClothContact.min_distances`), and the body's winding number (:meth:`kernels.raycast.MeshBVH.inside`).
+
+    The distances are unsigned: a vertex through the body counts by ``inside``, not by a negative distance. Any
+    positions will do (another simulator's output, say); they are float64 copies on the backend device.
+
+    Args:
+        x: ``[V, 3]`` garment vertices, m.
+        faces: ``[F, 3]`` integer garment triangles.
+        body_x: ``[B, 3]`` body vertices, m.
+        body_faces: ``[Fb, 3]`` integer body triangles, closed and outward-oriented for ``inside``.
+        reach: distances up to this are exact, m; beyond it they are reported as ``inf``.
+
+    Returns:
+        :class:`GarmentDistances`.
+    """
+    if not (math.isfinite(reach) and reach > 0.0):
+        raise ValueError(f"reach ({reach}) must be a positive distance, m")
+    for name, points in (("x", x), ("body_x", body_x)):
+        if points.dim() != 2 or points.shape[1] != 3:
+            raise ValueError(f"{name} must be a [N, 3] tensor of positions, got {tuple(points.shape)}")
+    device = backend.torch_device()
+    v, b = x.shape[0], body_x.shape[0]
+    X = torch.cat([x.detach().to(device, torch.float64), body_x.detach().to(device, torch.float64)]).contiguous()
+    contact = ClothContact(
+        faces.to(device, torch.int32).contiguous(), body_faces, v, b, ClothConfig(contact_distance=reach)
+    )
+    kinematic = torch.zeros(v + b, dtype=torch.bool, device=device)
+    kinematic[v:] = True  # leaves out the body's pairs with itself
+    d_body, d_garment, _ = contact.min_distances(X, contact.box_pairs(X, X, kinematic, X))
+    inside = MeshBVH(X[v:], body_faces.to(device).long(), winding_numbers=True).inside(X[:v]) if b else X[:0, 0]
+    # a pair's boxes within the reach need not hold the closest pair beyond it: report only distances within it
+    return GarmentDistances(
+        d_body if d_body <= reach else math.inf,
+        d_garment if d_garment <= reach else math.inf,
+        int(inside.sum()),
+    )
