@@ -39,6 +39,10 @@ def test_cloth_workloads_run_with_their_reference(device, capsys):
     assert records[0]["workload"] == "cloth_step_large" and records[0]["reference_median_s"] > 0
     if SHARED_GARMENTS.is_dir():
         assert [r["workload"] for r in records] == ["cloth_step_large", "cloth_step"]
+        skirt = records[1]  # measured after every frame by the garment simulator's own distance kernels
+        assert skirt["realtime_factor"] == pytest.approx(0.04 / skirt["median_s"])
+        assert 0 < skirt["min_distance_body"] < 0.01 and 0 < skirt["min_distance_self"] < 0.01
+        assert skirt["vertices_inside_body"] == 0
     else:
         skipped = [line for line in capsys.readouterr().err.splitlines() if "cloth_step skipped:" in line]
         assert len(skipped) == 1 and "skirt1252.obj" in skipped[0]
