@@ -1,4 +1,4 @@
-"""Garment simulator (PhysAvatar §3.2): one implicit Codim-IPC step per repetition.
+"""Garment simulator (PhysAvatar §3.2): one implicit Codim-IPC step per repetition, and a peer simulator beside it.
 
 ``cloth_step``: a DiffCloth skirt (7271 faces; 1252 at smoke size) on the procedural mannequin walking at 25 fps,
 its waistband following the body's skinning, contact and friction on. ``cloth_step_large``: a sheet falling onto
@@ -10,8 +10,35 @@ reference runs the same solver with the element energies, gradients and Hessians
 of :mod:`kernels.reference.cloth` (CCD, distances and the broad phase stay the kernels': the reference CCD is a
 per-pair NumPy root finder, far too slow for a step).
 
+``cloth_step_newton``: the peer, NVIDIA Newton 1.8's ``SolverVBD`` (vertex block descent, self-contact on) on the
+same skirt, the same mannequin mesh as Newton's kinematic mesh collider (its vertices moved by the same skinning,
+:class:`~physavatar.drive.BodyDriver`, linearly within a frame, every substep), the same walk at the same 25 fps,
+and the waist vertices as kinematic particles on the same driven targets. Newton is optional (``pip install -e
+'.[peers]'``); without it the workload is skipped and says so. Settings from Newton's example
+``cloth/example_cloth_poker_cards.py``, the one of its cloth examples in metres with SolverVBD, a kinematic
+collider and self-contact: 20 substeps a frame and 10 VBD iterations each, a particle radius of 3 mm (the contact
+thickness against the body), a self-contact margin of 1 mm with 0.5 mm more for detection, the topological
+contact filter of 2 rings, soft-contact stiffness 1e5 N/m and damping 1e2, the collision pipeline's soft-contact
+gap of 5 mm; the friction coefficient is ours (0.2), the example's 0.3 is not. Material, mapped from
+:class:`~physavatar.cloth.ClothConfig` (:func:`_newton_membrane`, :func:`_newton_hinge_stiffness`): areal density
+``ρ h``; membrane Lamé parameters ``h μ``, ``h λ`` (plane stress; Newton's stable Neo-Hookean membrane agrees with
+our StVK at small strain only); each hinge's stiffness set so that Newton's ``½ k_e ‖ē‖ (θ − θ̄)²`` equals our
+``k w̄ (θ − θ̄)²``; no material damping, as ours has none. What Newton cannot match: its body contact is a penalty
+(a stiffness acting within the 3 mm particle radius) and its self-contact a penalty whose moves are truncated to
+stay apart, where ours is an IPC barrier with CCD that keeps every pair apart by construction, so Newton's garment
+may press into the body; its time step is 20 explicit substeps of VBD
+iterations, not one converged implicit Euler step; its collider is the body mesh at one position per substep, not
+swept continuously as our CCD sweeps it; it runs in float32, ours in float64.
+
+Both skirt workloads carry in their records ``realtime_factor`` (0.04 s over the median seconds per frame) and,
+measured after every frame (untimed, :attr:`~apps.workloads.Case.observe`) by this project's own distance
+kernels (:func:`physavatar.cloth.contact.garment_distances`) on either simulator's positions:
+``min_distance_body`` and ``min_distance_self`` (m, the smallest over the frames run; garment pairs that share a
+vertex left out; ``None`` where nothing came within 1 cm) and ``vertices_inside_body`` (the most over the frames, by
+the body's winding number).
+
 ``cloth_step`` at paper size takes the skirt7271 (3757 vertices) through the walk; its figures on GPU and CPU, and
-what each change to the solver did to them, are on the measurements page ``docs/benchmarks.md``.
+what each change to the solver did to them, are on the measurements page ``docs/benchmarks.md``, as are the peer's.
 """
 
 from __future__ import annotations
