@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 
@@ -160,7 +161,7 @@ class _WalkingSkirt:
     """The garment scene both ``cloth_step`` and ``cloth_step_newton`` run: a DiffCloth skirt on the walking
     mannequin, its waistband driven by the skinning."""
 
-    path: object
+    path: Path  # the garment file
     faces: torch.Tensor  # [F, 3] garment triangles
     body_faces: torch.Tensor  # [Fb, 3] mannequin triangles
     x_rest: torch.Tensor  # [V, 3] garment rest positions, m
