@@ -187,8 +187,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for i, name in enumerate(names, 1):
         print(f"[{i}/{len(names)}] {name} on {device} ({args.size})", file=sys.stderr, flush=True)
         try:
-            w = registry[name]
-            case = w.setup(device, args.size, images) if w.writes_images else w.setup(device, args.size)
+            entry = registry[name]
+            case = entry.setup(device, args.size, images) if entry.writes_images else entry.setup(device, args.size)
         except WorkloadUnavailable as reason:
             print(f"[{i}/{len(names)}] {name} skipped: {reason}", file=sys.stderr, flush=True)
             continue
