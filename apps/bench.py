@@ -2,12 +2,14 @@
 
     python -m apps.bench --list
     python -m apps.bench --workload copy_taichi,copy_warp --device cuda --size paper --json out/bench.json
+    python -m apps.bench --workload nerf_train --device cuda --size paper --json out/nerf.json --images out/images
 
 Each workload is warmed up, run ``--reps`` times with device synchronisation around every
 repetition, and timed against its pure torch/NumPy reference in the same run. Records carry the
 median, min and max, the throughput, the speed-up over the reference and, on CUDA, the fraction of
 the GPU's memory-bandwidth or compute roofline. A readable table is printed; ``--json`` writes the
-records.
+records. Workloads that show their results as images (``nerf_train``'s error maps) write them into a subfolder of
+``--images``, or of ``<json stem>-images`` beside the ``--json`` file; with neither, no images are written.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import torch
 
 from apps.workloads import SIZES, Case, WorkloadUnavailable, load_all
 from kernels import backend
-from pienerf.output_files import OutputPathError, check_output_file, write_json
+from pienerf.output_files import OutputPathError, check_output_file, check_output_folder, write_json
 
 # Data-sheet peaks: DRAM bandwidth (bytes/s) and dense FP32 non-tensor-core throughput (FLOP/s).
 GPU_PEAKS = {
@@ -152,6 +154,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--size", default="smoke", help="smoke, paper or large")
     parser.add_argument("--reps", type=int, default=None, help="timed repetitions (default by size)")
     parser.add_argument("--json", type=Path, default=None, help="write the records to this file")
+    parser.add_argument(
+        "--images", type=Path, default=None,
+        help="folder for the images some workloads write (default: <json stem>-images beside --json, else none)",
+    )
     args = parser.parse_args(argv)
 
     registry = load_all()
@@ -168,11 +174,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
         _fail(f"unknown size {args.size!r}; valid: {', '.join(SIZES)}")
     if args.reps is not None and not 1 <= args.reps <= MAX_REPS:
         _fail(f"--reps must be between 1 and {MAX_REPS}, got {args.reps}")
-    if args.json is not None:
-        try:
+    images = args.images
+    if images is None and args.json is not None:
+        images = args.json.with_name(f"{args.json.stem}-images")
+    try:
+        if args.json is not None:
             check_output_file(args.json, "--json")
-        except OutputPathError as error:
-            _fail(str(error))
+        if images is not None and any(registry[n].writes_images for n in names):
+            check_output_folder(images, "--images")
+    except OutputPathError as error:
+        _fail(str(error))
     try:
         device = backend.init(args.device)
     except (ValueError, RuntimeError) as error:
@@ -183,7 +194,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
     for i, name in enumerate(names, 1):
         print(f"[{i}/{len(names)}] {name} on {device} ({args.size})", file=sys.stderr, flush=True)
         try:
-            case = registry[name].setup(device, args.size)
+            entry = registry[name]
+            case = entry.setup(device, args.size, images) if entry.writes_images else entry.setup(device, args.size)
         except WorkloadUnavailable as reason:
             print(f"[{i}/{len(names)}] {name} skipped: {reason}", file=sys.stderr, flush=True)
             continue

@@ -46,6 +46,8 @@ MAX_IMAGE_PIXELS = 64_000_000
 """Most pixels (width × height) one dataset image may have: 64 Mpx, 1 GiB as float32 RGBA, eight times a 4K frame.
 Larger images are refused from their header, before decoding (a small compressed file can claim 30000² pixels)."""
 
+_LOAD_THREADS = 16  # most threads decoding images at once
+
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
@@ -237,6 +239,26 @@ class NerfDataset:
             self, images=self.images[index], alphas=self.alphas[index], cameras=self.cameras.select(index), names=names
         )
 
+    def over_background(self, background: tuple[float, float, float]) -> NerfDataset:
+        """The same views composited over another solid ``background`` (RGB in [0, 1]), from their alphas: e.g. views
+        loaded over black for training, scored over white (``image' = image + (1 − α)(background' − background)``).
+
+        Raises:
+            ValueError: the views lie over a ``"random"`` background (its colours are not kept) or ``background`` is
+                not an RGB triple in [0, 1].
+        """
+        if isinstance(self.background, str):
+            raise ValueError(
+                "views over a 'random' background cannot be recomposited; load them over a solid one, e.g. "
+                "background=(0, 0, 0)"
+            )
+        new = _check_background(background)
+        if isinstance(new, str):
+            raise ValueError("over_background needs an RGB triple, not 'random'")
+        shift = torch.tensor(new, dtype=torch.float32) - torch.tensor(self.background, dtype=torch.float32)
+        images = (self.images + (1.0 - self.alphas[..., None]) * shift).clamp(0.0, 1.0)
+        return replace(self, images=images, background=new)
+
     def held_out(self, every: int = 8) -> tuple[NerfDataset, NerfDataset]:
         """Split into training views and held-out views 0, ``every``, 2·``every``, … (as ``split="test"`` does
         when a dataset has no test json).
@@ -309,32 +331,47 @@ def load_nerf_dataset(
     background_rgb = _check_background(background)
 
     paths = [_image_path(json_path, frame, allow_outside) for frame in frames]
-    with ThreadPoolExecutor(max_workers=4) as pool:
-        loaded = list(pool.map(lambda p: _read_premultiplied(p, json_path, downscale), paths))
-    (width, height), _ = loaded[0]
-    for path, (size, _) in zip(paths, loaded, strict=True):
-        if size != (width, height):
-            raise ValueError(
-                f"{path.name} is {size[0]}x{size[1]} pixels but {paths[0].name} is {width}x{height}; "
-                f"every view in {json_path.name} must have one size (resize the images to match)"
-            )
+    (width, height), first = _read_premultiplied(paths[0], json_path, downscale)
+    images = torch.empty(len(paths), *first.shape[:2], 3)
+    alphas = torch.empty(len(paths), *first.shape[:2])
+    if isinstance(background_rgb, str):
+        generator = torch.Generator().manual_seed(seed)
+        under = torch.rand(images.shape, generator=generator).numpy()
+    else:
+        under = np.asarray(background_rgb, dtype=np.float32)
+    image_array, alpha_array = images.numpy(), alphas.numpy()
+
+    def composite(k: int, rgba: np.ndarray | None = None) -> None:
+        """Decode view ``k`` (unless given) and composite it straight into its slot of the outputs."""
+        if rgba is None:
+            size, rgba = _read_premultiplied(paths[k], json_path, downscale)
+            if size != (width, height):
+                raise ValueError(
+                    f"{paths[k].name} is {size[0]}x{size[1]} pixels but {paths[0].name} is {width}x{height}; "
+                    f"every view in {json_path.name} must have one size (resize the images to match)"
+                )
+        alpha = rgba[..., 3]
+        alpha_array[k] = alpha
+        view_under = under[k] if isinstance(background_rgb, str) else under
+        out = image_array[k]
+        np.multiply(1.0 - alpha[..., None], view_under, out=out)
+        out += rgba[..., :3]
+        np.clip(out, 0.0, 1.0, out=out)
+
+    composite(0, first)
+    # Decoding (zlib) and NumPy's arithmetic release the GIL: threads decode on every core, each writing its own
+    # slot of the preallocated outputs (stacking the decoded views afterwards cost more than decoding them).
+    with ThreadPoolExecutor(max_workers=max(1, min(len(paths) - 1, os.cpu_count() or 1, _LOAD_THREADS))) as pool:
+        list(pool.map(composite, range(1, len(paths))))
 
     intrinsics = [_intrinsics(meta, frame, width, height, json_path) for frame in frames]
     fx, fy, cx, cy = (torch.tensor([k[i] for k in intrinsics], dtype=torch.float32) for i in range(4))
     c2w = torch.tensor(np.stack([_transform(frame, json_path) for frame in frames]), dtype=torch.float32)
     cameras = Cameras(c2w, fx, fy, cx, cy, width, height).scaled(downscale)
 
-    premultiplied = torch.from_numpy(np.stack([image for _, image in loaded]))  # [N, H, W, 4]
-    alpha = premultiplied[..., 3:4]
-    if isinstance(background_rgb, str):
-        generator = torch.Generator().manual_seed(seed)
-        under = torch.rand(premultiplied.shape[:-1] + (3,), generator=generator)
-    else:
-        under = torch.tensor(background_rgb, dtype=torch.float32)
-    images = (premultiplied[..., :3] + (1.0 - alpha) * under).clamp(0.0, 1.0)
     return NerfDataset(
-        images=images.contiguous(),
-        alphas=alpha[..., 0].contiguous(),
+        images=images,
+        alphas=alphas,
         cameras=cameras,
         names=[str(frame.get("file_path", "")) for frame in frames],
         split=split,

@@ -30,7 +30,7 @@ from pienerf.data import Cameras, NerfDataset, load_nerf_dataset
 from pienerf.nerf import NGPConfig, NGPField
 from pienerf.paths import cache_root
 from pienerf.scenes import render_scene, scene_mesh
-from pienerf.train import NerfCheckpoint, TrainConfig, Trainer, load_checkpoint
+from pienerf.train import NerfCheckpoint, TrainConfig, Trainer, load_checkpoint, start_optimizer_import
 
 __all__ = ["Z_UP_TO_Y_UP", "NerfFit", "dataset_nerf", "dataset_nerf_path", "scene_nerf", "visual_hull"]
 
@@ -142,6 +142,7 @@ def scene_nerf(
     path = folder / f"ngp-{fit.digest(scene=scene)}.pt"
     if path.is_file():
         return load_checkpoint(path)
+    start_optimizer_import()  # a fit follows: its optimizer's import overlaps with the loading
     dataset = load_nerf_dataset(folder, "train", background=(0.0, 0.0, 0.0))
     lo, hi = scene_mesh(scene).bounds
     torch.manual_seed(fit.seed)
@@ -225,6 +226,7 @@ def dataset_nerf(
         raise FileNotFoundError(f"NeRF data folder {folder} is absent; place the dataset there or fix the path")
     if path.is_file():
         return load_checkpoint(path)
+    start_optimizer_import()  # a fit follows: its optimizer's import overlaps with the loading
     if progress is not None:
         progress(f"reading {folder.name}", 0.0)
     dataset = load_nerf_dataset(

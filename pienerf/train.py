@@ -23,9 +23,12 @@ interrupted save never leaves a half-written checkpoint under the final name.
 
 from __future__ import annotations
 
+import importlib
 import math
 import os
+import sys
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -37,10 +40,44 @@ from kernels.image_metrics import psnr, ssim
 from pienerf.data import Cameras, NerfDataset
 from pienerf.nerf import NGPConfig, NGPField, OccupancyGrid, render_rays
 
-__all__ = ["CHECKPOINT_FORMAT", "NerfCheckpoint", "TrainConfig", "Trainer", "load_checkpoint", "save_checkpoint"]
+__all__ = [
+    "CHECKPOINT_FORMAT",
+    "NerfCheckpoint",
+    "TrainConfig",
+    "Trainer",
+    "load_checkpoint",
+    "save_checkpoint",
+    "start_optimizer_import",
+]
 
 CHECKPOINT_FORMAT = "pienerf-ngp-v1"
 _GRID_FULL_UPDATE_CELLS = 1 << 18  # grids up to 64³ are re-evaluated at every cell on each update
+
+_optimizer_import: threading.Thread | None = None  # the thread of start_optimizer_import
+
+
+def start_optimizer_import() -> None:
+    """Start importing ``torch._dynamo`` on a background thread, unless it is loaded or loading.
+
+    ``torch.optim``'s optimizers import ``torch._dynamo`` when the first one is built (in :class:`Trainer`): about a
+    second of Python on one core, the largest part of a training program's start-up after ``import torch``
+    (``docs/benchmarks.md``). A program that will train calls this first thing, so that the import overlaps with its
+    backend start and data loading (whose image decoding releases the interpreter lock); the :class:`Trainer` then
+    finds the module loaded, or waits for the rest of its import. An import that fails on the thread is retried, and
+    raises, where the optimizer is built.
+    """
+    global _optimizer_import
+    if "torch._dynamo" in sys.modules or _optimizer_import is not None:
+        return
+    _optimizer_import = threading.Thread(target=_import_quietly, args=("torch._dynamo",), daemon=True)
+    _optimizer_import.start()
+
+
+def _import_quietly(name: str) -> None:
+    try:
+        importlib.import_module(name)
+    except Exception:  # retried, and reported, where the optimizer is built
+        pass
 
 
 @dataclass(frozen=True)
@@ -254,6 +291,8 @@ class Trainer:
         self._generator = torch.Generator(device=self.device).manual_seed(self.config.seed + self.step)
         c = self.config
         mlps = [p for name, p in self.field.named_parameters() if not name.startswith("encoding.")]
+        if _optimizer_import is not None:
+            _optimizer_import.join()  # (start_optimizer_import) the optimizer's import finishes on its own thread
         self.optimizer = torch.optim.Adam(
             [
                 {"params": list(self.field.encoding.parameters()), "lr": c.lr_encoding, "weight_decay": 0.0},
@@ -401,8 +440,10 @@ def _premultiplied(dataset: NerfDataset) -> tuple[torch.Tensor, torch.Tensor]:
             "the trainer composites its own random backgrounds and needs the images' colours: load the "
             "dataset over a solid background, e.g. load_nerf_dataset(folder, background=(0, 0, 0))"
         )
-    background = torch.tensor(dataset.background, dtype=torch.float32)
     alphas = dataset.alphas.float()
+    if dataset.background == (0.0, 0.0, 0.0):  # already premultiplied: no copy of the whole set
+        return dataset.images, alphas
+    background = torch.tensor(dataset.background, dtype=torch.float32)
     return (dataset.images - (1.0 - alphas[..., None]) * background).clamp(0.0, 1.0), alphas
 
 

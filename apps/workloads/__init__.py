@@ -1,9 +1,11 @@
 """Benchmark workloads of :mod:`apps.bench`, one module per domain.
 
 A workload is a function ``setup(device, size) -> Case`` registered under a name with
-:func:`workload`. ``setup`` allocates everything; the returned ``Case.run`` does only the timed work,
-and ``Case.reference`` does the same work in pure torch/NumPy, timed in the same run. A ``setup`` that lacks what it
-needs on this machine (a data file) raises :class:`WorkloadUnavailable`; the suite then skips it and says why.
+:func:`workload`; one registered with ``writes_images=True`` takes a third argument, ``images``: the folder its
+images go to (``apps.bench --images``), or ``None`` for none. ``setup`` allocates everything; the returned
+``Case.run`` does only the timed work, and ``Case.reference`` does the same work in pure torch/NumPy, timed in the
+same run. A ``setup`` that lacks what it needs on this machine (a data file) raises :class:`WorkloadUnavailable`; the
+suite then skips it and says why.
 """
 
 from __future__ import annotations
@@ -59,21 +61,25 @@ class Case:
 
 @dataclass(frozen=True)
 class Workload:
+    """A registered workload; ``writes_images``: its ``setup`` takes the images folder as a third argument."""
+
     name: str
     description: str
-    setup: Callable[[str, str], Case]
+    setup: Callable[..., Case]
+    writes_images: bool = False
 
 
 REGISTRY: dict[str, Workload] = {}
 
 
-def workload(name: str, description: str):
-    """Register ``setup(device, size) -> Case`` as the workload ``name``."""
+def workload(name: str, description: str, writes_images: bool = False):
+    """Register ``setup(device, size) -> Case`` (``setup(device, size, images)`` with ``writes_images``) as the
+    workload ``name``."""
 
-    def register(setup: Callable[[str, str], Case]) -> Callable[[str, str], Case]:
+    def register(setup: Callable[..., Case]) -> Callable[..., Case]:
         if name in REGISTRY:
             raise ValueError(f"workload {name!r} is registered twice")
-        REGISTRY[name] = Workload(name, description, setup)
+        REGISTRY[name] = Workload(name, description, setup, writes_images)
         return setup
 
     return register

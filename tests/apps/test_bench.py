@@ -1,10 +1,12 @@
 import json
+import math
 import subprocess
 import sys
 
 import pytest
 
 from apps import bench
+from apps.workloads.nerf import SMOKE_CHECKPOINTS_S, measure_startup, parse_startup_report
 from physavatar.garment import SHARED_GARMENTS
 
 pytestmark = pytest.mark.data  # the cloth and NeRF workloads read garments and the lego scene when present
@@ -92,6 +94,16 @@ def test_an_unwritable_json_path_is_refused_before_any_work(tmp_path, capsys):
     assert taken.read_text() == "a file"
 
 
+def test_an_images_folder_that_is_a_file_is_refused_before_any_work(tmp_path, capsys):
+    taken = tmp_path / "taken"
+    taken.write_text("a file")
+    with pytest.raises(SystemExit) as stop:
+        bench.main(["--workload", "nerf_train", "--device", "cpu", "--images", str(taken)])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert f"--images {taken} is a file, not a folder" in err and "nerf_train on" not in err, err
+
+
 def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
     """The viewer's frame gives its step and its render apart; the Q-GMLS step runs beside its torch reference."""
     records = bench.main(
@@ -103,3 +115,42 @@ def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
     assert viewer["step_median_s"] > 0 and viewer["render_median_s"] > 0
     assert step["reference_median_s"] > 0
     assert (step["time_device_loop_s"] if step["device_loop"] else step["time_assembly_s"]) > 0
+
+
+def test_nerf_train_records_a_curve_and_writes_error_images(device, tmp_path):
+    """The smoke size's short curve: checkpoints in time and step order with finite scores, and one error image per
+    scored view plus a contact sheet, named in the record."""
+    (record,) = bench.main(
+        ["--workload", "nerf_train", "--device", device, "--size", "smoke", "--reps", "1", "--images", str(tmp_path)]
+    )
+    curve = record["curve"]
+    assert 1 <= len(curve) <= len(SMOKE_CHECKPOINTS_S)
+    assert all(a["seconds"] < b["seconds"] and a["steps"] < b["steps"] for a, b in zip(curve, curve[1:], strict=False))
+    assert curve[0]["seconds"] >= SMOKE_CHECKPOINTS_S[0] and curve[0]["steps"] >= 1
+    assert all(math.isfinite(p["psnr"]) and -1.0 <= p["ssim"] <= 1.0 for p in curve)
+    assert record["psnr_at_2s"] == curve[-1]["psnr"] and record["train_steps"] == curve[-1]["steps"]
+    assert record["seconds_to_psnr30"] is None or record["seconds_to_psnr30"] > 0
+    assert len(record["view_psnr"]) == record["scored_views"] == 2
+    images = record["error_images"]
+    assert set(images["views"]) == set(record["view_psnr"])
+    for path in [*images["views"].values(), images["sheet"]]:
+        assert path.startswith(str(tmp_path)) and path.endswith(".png")
+        with open(path, "rb") as file:
+            assert file.read(8) == b"\x89PNG\r\n\x1a\n"
+
+
+def test_startup_report_is_the_last_json_line():
+    line = '{"first_step_s": 2.5, "breakdown": {"imports": 1.2}}'
+    assert parse_startup_report(f"[Taichi] Starting on arch=x64\n{line}\n")["breakdown"] == {"imports": 1.2}
+    with pytest.raises(ValueError, match="printed no report line"):
+        parse_startup_report('[Taichi] Starting\n{"other": 1}\n')
+
+
+def test_startup_probe_trains_one_step_in_a_fresh_process(shared_data):
+    """The probe's child process at smoke size on a few downscaled lego views: the phases add up to the total."""
+    report = measure_startup("cpu", "smoke", shared_data / "nerf_synthetic_lego", downscale=8, max_views=9)
+    phases = report["breakdown"]
+    assert set(phases) == {"interpreter", "imports", "backend_init", "data", "field", "trainer", "first_step"}
+    assert all(seconds >= 0.0 for seconds in phases.values()) and phases["imports"] > 0.0
+    assert sum(phases.values()) == pytest.approx(report["first_step_s"], abs=0.05)
+    assert report["views"] == 7 and report["image_size"] == [100, 100]

@@ -126,6 +126,18 @@ def test_held_out_views_without_a_test_json(tmp_path):
     assert len(load_nerf_dataset(tmp_path, split="test")) == 2  # a test json, when present, is used
 
 
+def test_views_recomposited_over_another_background_match_a_load_over_it(tmp_path):
+    _write_dataset(tmp_path)
+    black, white = load_nerf_dataset(tmp_path, background=(0, 0, 0)), load_nerf_dataset(tmp_path)
+    moved = black.over_background((1.0, 1.0, 1.0))
+    assert moved.background == (1.0, 1.0, 1.0) and black.background == (0.0, 0.0, 0.0)
+    torch.testing.assert_close(moved.images, white.images)
+    with pytest.raises(ValueError, match="cannot be recomposited; load them over a solid one"):
+        load_nerf_dataset(tmp_path, background="random").over_background((1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="RGB triple in"):
+        black.over_background((2.0, 0.0, 0.0))
+
+
 def test_missing_image_names_the_file_and_the_json(tmp_path):
     _write_dataset(tmp_path, count=4)
     (tmp_path / "train" / "r_3.png").unlink()
