@@ -15,8 +15,10 @@ Conventions:
 * The hash works in ``uint32`` arithmetic (products wrap modulo ``2^32``), as in the paper.
 
 Both frameworks are kept, because the faster one depends on the device: on the CPU Taichi runs on every core and
-Warp on one; on CUDA Warp's backward is faster and the forward passes are within run-to-run spread (figures in
-``docs/benchmarks.md``). :func:`default_framework` therefore picks Taichi on the CPU and Warp on CUDA.
+Warp on one; on CUDA the Warp kernels are faster (figures in ``docs/benchmarks.md``): their threads run level by
+level, so the blocks in flight share one level's table in L2, the forward pass writes its features feature-major
+(coalesced) and the backward pass adds two features with one vector reduction. :func:`default_framework` therefore
+picks Taichi on the CPU and Warp on CUDA.
 """
 
 import functools
@@ -77,12 +79,11 @@ def level_resolutions(levels: int, base_resolution: int, max_resolution: int) ->
 
 
 def _level_major() -> bool:
-    """Thread order of the kernels on the initialised device.
+    """Thread order of the Taichi kernels on the initialised device (the Warp kernels are level-major everywhere).
 
     CPU: level-major, so one level's table (4 MB at ``T = 2^19``) stays in cache while all points
     visit it, and the Taichi backward gives each level to one task (no atomics). CUDA: point-major,
-    so the 32 threads of a warp write 2 whole output rows (coalesced); level-major ran slower there
-    (``docs/benchmarks.md``).
+    so the 32 threads of a warp write 2 whole rows of Taichi's row-major output (coalesced).
     """
     return backend.current_device() == "cpu"
 
@@ -151,17 +152,36 @@ def _corner_wp(corner: wp.int32, local: wp.vec3):
     return offset, weight
 
 
-@wp.func
-def _point_level_wp(tid: wp.int32, points: wp.int32, levels: wp.int32, level_major: wp.bool):
-    """Point and level of a thread: level-major order (CPU) or point-major order (CUDA), see :func:`_level_major`."""
-    if level_major:
-        return tid % points, tid // points
-    return tid // levels, tid % levels
+_RED_ADD_PAIR = """
+#if defined(__CUDA_ARCH__) && (__CUDA_ARCH__ >= 900)
+    asm volatile("red.global.add.v2.f32 [%0], {%1, %2};" :: "l"(&grad[index]), "f"(a), "f"(b) : "memory");
+#elif defined(__CUDA_ARCH__)
+    atomicAdd(&grad[index], a);
+    atomicAdd(&grad[index + 1], b);
+#else
+    wp::atomic_add(&grad[index], a);
+    wp::atomic_add(&grad[index + 1], b);
+#endif
+"""
+
+
+@wp.func_native(_RED_ADD_PAIR)
+def _red_add_pair_wp(grad: wp.array(dtype=wp.float32), index: wp.int32, a: wp.float32, b: wp.float32):
+    """``grad[index] += a; grad[index + 1] += b`` atomically; ``index`` even (8-byte aligned).
+
+    On sm_90 and later one vector reduction (``red.global.add.v2.f32``) adds both: the L2 cache then does half
+    as many atomic operations, which halves the backward pass (``docs/benchmarks.md``).
+    """
+    ...
 
 
 @functools.cache
-def _forward_kernel_wp(features: int, level_major: bool):
-    """Forward Warp kernel for ``features`` floats per row, one thread per (point, level)."""
+def _forward_kernel_wp(features: int):
+    """Forward Warp kernel for ``features`` floats per row: thread ``(level, i)``, output feature-major ``[L F, N]``.
+
+    Level-major threads: the blocks in flight read one level's table, which stays in L2 (a 2^19-row level is 4 MB,
+    all 16 levels 64 MB); the feature-major output lets a warp's 32 threads write 32 consecutive floats.
+    """
     vec = wp.types.vector(length=features, dtype=wp.float32)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -169,9 +189,9 @@ def _forward_kernel_wp(features: int, level_major: bool):
         x: wp.array(dtype=wp.vec3),
         table: wp.array2d(dtype=vec),
         resolutions: wp.array(dtype=wp.int32),
-        out: wp.array2d(dtype=vec),
+        out: wp.array2d(dtype=wp.float32),
     ):
-        i, level = _point_level_wp(wp.tid(), x.shape[0], resolutions.shape[0], level_major)
+        level, i = wp.tid()
         resolution = resolutions[level]
         table_size = table.shape[1]
         dense = _is_dense_wp(resolution, table_size)
@@ -181,35 +201,48 @@ def _forward_kernel_wp(features: int, level_major: bool):
             offset, weight = _corner_wp(corner, local)
             row = _vertex_index_wp(cell + offset, resolution, dense, table_size)
             acc += weight * table[level, row]
-        out[i, level] = acc
+        for f in range(features):
+            out[level * features + f, i] = acc[f]
 
     return _hashgrid_forward_wp, vec
 
 
 @functools.cache
-def _backward_kernel_wp(features: int, level_major: bool):
-    """Backward Warp kernel (atomic scatter-add) for ``features`` floats per row, one thread per (point, level)."""
-    vec = wp.types.vector(length=features, dtype=wp.float32)
+def _backward_kernel_wp(features: int):
+    """Backward Warp kernel (atomic scatter-add into the flat ``[L T F]`` gradient), thread ``(level, i)``.
+
+    Level-major, as the forward pass, so that one level's gradient rows take the atomics in L2; features are added
+    in pairs by :func:`_red_add_pair_wp` when ``F`` is even, one by one otherwise.
+    """
+    pairs = features // 2 if features % 2 == 0 else 0
 
     @wp.kernel(enable_backward=False, module="unique")
     def _hashgrid_backward_wp(
         x: wp.array(dtype=wp.vec3),
-        grad_out: wp.array2d(dtype=vec),
+        grad_out: wp.array2d(dtype=wp.float32),
         resolutions: wp.array(dtype=wp.int32),
-        grad_table: wp.array2d(dtype=vec),
+        grad_table: wp.array(dtype=wp.float32),
+        table_size: wp.int32,
     ):
-        i, level = _point_level_wp(wp.tid(), x.shape[0], resolutions.shape[0], level_major)
+        level, i = wp.tid()
         resolution = resolutions[level]
-        table_size = grad_table.shape[1]
         dense = _is_dense_wp(resolution, table_size)
         cell, local = _cell_wp(x[i], resolution)
-        g = grad_out[i, level]
+        first = level * features
         for corner in range(8):
             offset, weight = _corner_wp(corner, local)
             row = _vertex_index_wp(cell + offset, resolution, dense, table_size)
-            wp.atomic_add(grad_table, level, row, weight * g)
+            base = (level * table_size + row) * features
+            if pairs > 0:
+                for k in range(pairs):
+                    a = weight * grad_out[i, first + 2 * k]
+                    b = weight * grad_out[i, first + 2 * k + 1]
+                    _red_add_pair_wp(grad_table, base + 2 * k, a, b)
+            else:
+                for f in range(features):
+                    wp.atomic_add(grad_table, base + f, weight * grad_out[i, first + f])
 
-    return _hashgrid_backward_wp, vec
+    return _hashgrid_backward_wp
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -360,28 +393,32 @@ def hashgrid_forward(
         framework: ``"taichi"`` or ``"warp"``; ``None`` takes :func:`default_framework`.
 
     Returns:
-        float32 ``[N, L * F]`` features, ``out[n, l * F + f]``.
+        float32 ``[N, L * F]`` features, ``out[n, l * F + f]``. Warp writes them feature-major and returns the
+        transposed view (strides ``(1, N)``), which ``torch.nn.Linear`` and matmul read without a copy; call
+        ``.contiguous()`` where row-major storage is needed.
     """
     framework = backend.check_framework(framework)
     levels, table_size, features = _check_table(table, "table")
     resolutions = _check_levels(x, resolutions, levels)
-    out = torch.empty(x.shape[0], levels * features, dtype=torch.float32, device=x.device)
-    if x.shape[0] == 0:
-        return out
     if framework == "warp":
-        forward_kernel, vec = _forward_kernel_wp(features, _level_major())
+        forward_kernel, vec = _forward_kernel_wp(features)
+        out = torch.empty(levels * features, x.shape[0], dtype=torch.float32, device=x.device)
+        if x.shape[0] == 0:
+            return out.t()
         wp.launch(
             forward_kernel,
-            dim=x.shape[0] * levels,
+            dim=(levels, x.shape[0]),
             inputs=[
                 backend.to_warp(x, dtype=wp.vec3),
                 backend.to_warp(table, dtype=vec),
                 backend.to_warp(resolutions),
-                backend.to_warp(out.view(x.shape[0], levels, features), dtype=vec),
+                backend.to_warp(out),
             ],
             device=backend.warp_device(),
         )
-    else:
+        return out.t()
+    out = torch.empty(x.shape[0], levels * features, dtype=torch.float32, device=x.device)
+    if x.shape[0] > 0:
         _hashgrid_forward_ti(
             backend.taichi_arg(x),
             backend.taichi_arg(table),
@@ -438,15 +475,15 @@ def hashgrid_backward(
     if x.shape[0] == 0:
         return grad_table
     if framework == "warp":
-        backward_kernel, vec = _backward_kernel_wp(features, _level_major())
         wp.launch(
-            backward_kernel,
-            dim=x.shape[0] * levels,
+            _backward_kernel_wp(features),
+            dim=(levels, x.shape[0]),
             inputs=[
                 backend.to_warp(x, dtype=wp.vec3),
-                backend.to_warp(grad_out.view(x.shape[0], levels, features), dtype=vec),
+                backend.to_warp(grad_out),
                 backend.to_warp(resolutions),
-                backend.to_warp(grad_table, dtype=vec),
+                backend.to_warp(grad_table.view(-1)),
+                table_size,
             ],
             device=backend.warp_device(),
         )

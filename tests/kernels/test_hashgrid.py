@@ -49,7 +49,7 @@ def test_forward_matches_reference(device, framework, table_size, features):
 
 
 @pytest.mark.parametrize("framework", FRAMEWORKS)
-@pytest.mark.parametrize(("table_size", "features"), [(1 << 12, 2), (3001, 3)])
+@pytest.mark.parametrize(("table_size", "features"), [(1 << 12, 2), (3001, 3), (1 << 11, 4)])
 def test_backward_matches_reference_with_hash_collisions(device, framework, table_size, features):
     x = _points(5000, seed=2)
     resolutions = level_resolutions(LEVELS, BASE, MAX)
