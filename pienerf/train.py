@@ -12,8 +12,9 @@ The recipe is instant-NGP's (Müller et al. 2022, §5.4 and Appendix E):
 * every ray is composited over its own random background colour, and its target pixel over the same
   colour (``target = premultiplied + (1 − α) · background``): a constant background would let the
   network paint it into empty space instead of learning transparency;
-* the occupancy grid is left fully occupied for ``grid_warmup_steps``, then updated every
-  ``grid_update_every`` steps: the first time at every cell, later (large grids) at a quarter of the
+* the occupancy grid is left fully occupied for ``grid_warmup_steps`` (16: a fully occupied grid makes every ray
+  march the whole box, and 256 such steps of 16k rays took 20 s on an H100, where 16 reach 29 dB on lego's
+  unseen views in the first 15 s, against 23 dB), then updated every ``grid_update_every`` steps: the first time at every cell, later (large grids) at a quarter of the
   cells drawn uniformly and a quarter drawn among the occupied ones, each stored density decaying by
   ``grid_decay`` (:meth:`pienerf.nerf.OccupancyGrid.update`).
 
@@ -108,7 +109,7 @@ class TrainConfig:
     mlp_weight_decay: float = 1e-6
     lr_final_factor: float = 0.1
     grid_update_every: int = 16
-    grid_warmup_steps: int = 256
+    grid_warmup_steps: int = 16
     random_background: bool = True
     near: float = 0.0
     far: float = 1e10
@@ -300,6 +301,7 @@ class Trainer:
             ],
             betas=c.betas,
             eps=c.eps,
+            fused=self.device.type == "cuda",  # one kernel for all 16.8M table entries and the MLPs, not a dozen
         )
         self._base_lrs = [group["lr"] for group in self.optimizer.param_groups]
 
