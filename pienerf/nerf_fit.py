@@ -105,6 +105,7 @@ def _fit(
                 f"training the {what} NeRF: step {trainer.step}/{total}, PSNR {stats['psnr']:.1f} dB",
                 trainer.step / total,
             )
+    trainer.keep_averaged_weights()
     trainer.save(path)
     trainer.field.eval()
     return NerfCheckpoint(trainer.field, trainer.grid, trainer.step, fit.train, None)

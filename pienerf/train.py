@@ -14,9 +14,10 @@ The recipe is instant-NGP's (Müller et al. 2022, §5.4 and Appendix E):
   network paint it into empty space instead of learning transparency;
 * the occupancy grid is left fully occupied for ``grid_warmup_steps`` (16: a fully occupied grid makes every ray
   march the whole box, and 256 such steps of 16k rays took 20 s on an H100, where 16 reach 29 dB on lego's
-  unseen views in the first 15 s, against 23 dB), then updated every ``grid_update_every`` steps: the first time at every cell, later (large grids) at a quarter of the
-  cells drawn uniformly and a quarter drawn among the occupied ones, each stored density decaying by
-  ``grid_decay`` (:meth:`pienerf.nerf.OccupancyGrid.update`).
+  unseen views in the first 15 s, against 23 dB), then updated every ``grid_update_every`` steps: the first time
+  at every cell, later (large grids) at a quarter of the cells drawn uniformly and a quarter drawn among the
+  occupied ones, each stored density decaying by ``grid_decay`` (:meth:`pienerf.nerf.OccupancyGrid.update`);
+* views are rendered with a running average of the weights (``average_decay``, instant-NGP's EMA of 0.95).
 
 Checkpoints are written atomically (a temporary file in the same folder, then ``os.replace``), so an
 interrupted save never leaves a half-written checkpoint under the final name.
@@ -24,6 +25,7 @@ interrupted save never leaves a half-written checkpoint under the final name.
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import math
 import os
@@ -98,6 +100,9 @@ class TrainConfig:
         random_background: composite every ray over a random colour (learns transparency).
         near, far: depth interval sampled along each ray, metres (the scene box clips it further).
         seed: seed of the batch sampler, jitter, backgrounds and grid updates.
+        average_decay: the views are rendered with a running average of the weights, ``w̄ ← d w̄ + (1 − d) w``
+            after every step (instant-NGP's exponential moving average, ``d = 0.95``): at a learning rate of 1e-2
+            the raw weights jitter from step to step; 0 renders with the raw weights.
     """
 
     steps: int = 20_000
@@ -114,8 +119,11 @@ class TrainConfig:
     near: float = 0.0
     far: float = 1e10
     seed: int = 0
+    average_decay: float = 0.95
 
     def __post_init__(self):
+        if not 0.0 <= self.average_decay < 1.0:
+            raise ValueError(f"average_decay must lie in [0, 1), got {self.average_decay}")
         if self.steps < 1 or self.batch_rays < 1 or self.grid_update_every < 1 or self.grid_warmup_steps < 0:
             raise ValueError(
                 f"need steps, batch_rays, grid_update_every >= 1 and grid_warmup_steps >= 0, got {self}"
@@ -304,6 +312,9 @@ class Trainer:
             fused=self.device.type == "cuda",  # one kernel for all 16.8M table entries and the MLPs, not a dozen
         )
         self._base_lrs = [group["lr"] for group in self.optimizer.param_groups]
+        self._parameters = list(self.field.parameters())
+        average = c.average_decay > 0.0
+        self._averaged = [p.detach().clone() for p in self._parameters] if average else None
 
     @classmethod
     def from_checkpoint(cls, path: str | Path, dataset: NerfDataset, config: TrainConfig | None = None) -> Trainer:
@@ -345,8 +356,12 @@ class Trainer:
         self.grid.update(self.field.density, samples=None if full else cells // 4, generator=self._generator)
         self._grid_updates += 1
 
-    def train_step(self) -> dict[str, float]:
-        """One optimisation step; returns ``loss`` (MSE), ``psnr`` (dB, of the batch) and ``samples_per_ray``."""
+    def train_step(self, stats: bool = True) -> dict[str, float]:
+        """One optimisation step; returns ``loss`` (MSE), ``psnr`` (dB, of the batch) and ``samples_per_ray``.
+
+        ``stats=False`` returns ``{}`` instead, without waiting for the device: the host then queues the next step
+        while this one runs.
+        """
         self.field.train()
         self._update_grid()
         origins, directions, background, target = self._sample_batch()
@@ -359,10 +374,15 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
+        if self._averaged is not None:
+            with torch.no_grad():
+                torch._foreach_lerp_(self._averaged, self._parameters, 1.0 - self.config.average_decay)
         self.step += 1
         decay = self.config.lr_final_factor ** min(1.0, self.step / self.config.steps)
         for group, base in zip(self.optimizer.param_groups, self._base_lrs, strict=True):
             group["lr"] = base * decay
+        if not stats:
+            return {}
         mse = float(loss.detach())
         return {
             "loss": mse,
@@ -387,8 +407,9 @@ class Trainer:
             bar.start()
         try:
             for i in range(steps):
-                stats = self.train_step()
-                if bar and (i % 10 == 0 or i == steps - 1):
+                shown = bar is not None and i % 10 == 0
+                stats = self.train_step(stats=shown or i == steps - 1)
+                if shown or (bar and i == steps - 1):
                     rate = self.config.batch_rays * (i + 1) / (time.perf_counter() - start)
                     line = f"loss {stats['loss']:.4f}  PSNR {stats['psnr']:.2f} dB  {rate / 1e3:.1f}k rays/s"
                     bar.update(task, completed=i + 1, stats=line)
@@ -400,17 +421,42 @@ class Trainer:
             stats["rays_per_second"] = self.config.batch_rays * steps / elapsed
         return stats
 
+    @contextlib.contextmanager
+    def averaged_weights(self):
+        """Inside the ``with`` block the field holds the running average of its weights (``average_decay``); the
+        training weights come back on leaving it. With ``average_decay = 0`` the field keeps its weights."""
+        if self._averaged is None:
+            yield self.field
+            return
+        with torch.no_grad():
+            current = [p.detach().clone() for p in self._parameters]
+            torch._foreach_copy_(self._parameters, self._averaged)
+        try:
+            yield self.field
+        finally:
+            with torch.no_grad():
+                torch._foreach_copy_(self._parameters, current)
+
+    def keep_averaged_weights(self) -> None:
+        """Give the field the running average of its weights for good: call it when training is over (a checkpoint
+        saved afterwards holds them; training on from it restarts the average there)."""
+        if self._averaged is not None:
+            with torch.no_grad():
+                torch._foreach_copy_(self._parameters, self._averaged)
+
     @torch.no_grad()
     def render_view(
         self, cameras: Cameras, index: int, background=(1.0, 1.0, 1.0), chunk: int = 4096
     ) -> dict[str, torch.Tensor]:
-        """Render view ``index`` of ``cameras``: ``rgb [H, W, 3]``, ``opacity [H, W]``, ``depth [H, W]`` (metres)."""
+        """Render view ``index`` of ``cameras`` with the averaged weights (:meth:`averaged_weights`): ``rgb [H, W,
+        3]``, ``opacity [H, W]``, ``depth [H, W]`` (metres)."""
         self.field.eval()
         origins, directions = cameras.to(self.device).rays(index)
-        out = render_rays(
-            self.field, self.grid, origins.contiguous(), directions.contiguous(), self.config.near,
-            self.config.far, background, chunk=chunk,
-        )
+        with self.averaged_weights() as field:
+            out = render_rays(
+                field, self.grid, origins.contiguous(), directions.contiguous(), self.config.near,
+                self.config.far, background, chunk=chunk,
+            )
         h, w = cameras.height, cameras.width
         return {"rgb": out["rgb"].view(h, w, 3), "opacity": out["opacity"].view(h, w), "depth": out["depth"].view(h, w)}
 

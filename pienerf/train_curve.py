@@ -158,7 +158,7 @@ def train_curve(
             continue
         start = time.perf_counter()
         while clock + (time.perf_counter() - start) < target:
-            trainer.train_step()
+            trainer.train_step(stats=False)
         backend.synchronize()
         clock += time.perf_counter() - start
         view_psnr, view_ssim, renders = score_views(trainer, views, chunk)

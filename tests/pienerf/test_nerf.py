@@ -285,6 +285,38 @@ def test_checkpoint_round_trip_reproduces_renders(device, sphere_scene, tmp_path
     assert resumed.step == 14
 
 
+def test_views_render_with_the_running_average_of_the_weights(device, sphere_scene):
+    data = load_nerf_dataset(sphere_scene, "train", downscale=2, background=(0.0, 0.0, 0.0), max_views=8)
+    decay = 0.9
+    trainer = Trainer(_field(), data, _train_config(batch_rays=256, grid_warmup_steps=4, average_decay=decay))
+    start = [p.detach().clone() for p in trainer.field.parameters()]
+    raw = []
+    for _ in range(3):
+        assert trainer.train_step(stats=False) == {}
+        raw.append([p.detach().clone() for p in trainer.field.parameters()])
+    # w̄ = d³ w₀ + (1 − d)(d² w₁ + d w₂ + w₃): the average of the steps, the start weighted by what is left
+    expected = [
+        decay**3 * w0 + (1 - decay) * (decay**2 * w1 + decay * w2 + w3)
+        for w0, w1, w2, w3 in zip(start, *raw, strict=True)
+    ]
+    with trainer.averaged_weights() as field:
+        for p, e in zip(field.parameters(), expected, strict=True):
+            torch.testing.assert_close(p, e, rtol=1e-5, atol=1e-6)
+    for p, w in zip(trainer.field.parameters(), raw[-1], strict=True):
+        assert torch.equal(p, w), "leaving the block gives the training weights back exactly"
+
+    cameras = data.cameras.select([0])
+    averaged = trainer.render_view(cameras, 0)["rgb"]
+    plain_trainer = Trainer(trainer.field, data, _train_config(average_decay=0.0), grid=trainer.grid)
+    plain = plain_trainer.render_view(cameras, 0)["rgb"]
+    assert not torch.equal(averaged, plain), "render_view renders the averaged weights"
+    trainer.keep_averaged_weights()
+    for p, e in zip(trainer.field.parameters(), expected, strict=True):
+        torch.testing.assert_close(p, e, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="average_decay must lie in"):
+        TrainConfig(average_decay=1.0)
+
+
 def test_bad_checkpoints_raise_clear_errors(device, tmp_path):
     with pytest.raises(FileNotFoundError, match="no checkpoint at"):
         load_checkpoint(tmp_path / "missing.pt")
