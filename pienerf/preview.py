@@ -12,8 +12,8 @@ A :class:`RenderBackend` renders the body at generalized coordinates ``q`` seen 
 * :class:`ParticleRenderBackend`: the deformed particles splatted as discs with the colour of the nearest mesh
   vertex.
 * :class:`NerfRenderBackend`: a trained NeRF rendered by quadratic (or linear) ray warping, Eq. 19–21
-  (:class:`pienerf.render.DeformedRenderer`), at a ``downscale`` a viewer raises while the user drags and lowers to
-  1 to refine a still view, as :class:`RefinementSchedule` decides.
+  (:class:`pienerf.render.DeformedRenderer`), at a ``downscale`` a viewer raises while the user drags, as far as a
+  frame budget asks, and lowers to 1 to refine a still view, as :class:`RefinementSchedule` decides.
 
 Backends that hold the discretised body (a ``rebind(model)`` method) follow it through re-sampling and cuts.
 """
@@ -34,7 +34,7 @@ from pienerf.nerf import OccupancyGrid
 from pienerf.picking import PickSurface
 from pienerf.render import MODES, DeformedRenderer, GroundPlane
 from pienerf.scenes import LIGHT_DIRECTION
-from pienerf.solver import PlaneCollider, SphereCollider
+from pienerf.solver import PlaneCollider, SphereCollider, StepReport
 
 __all__ = [
     "Frame",
@@ -43,6 +43,7 @@ __all__ = [
     "ParticleRenderBackend",
     "RefinementSchedule",
     "RenderBackend",
+    "step_seconds",
 ]
 
 
@@ -369,19 +370,118 @@ def _upsample(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
 
 
 class RefinementSchedule:
-    """The resolution a preview is rendered at: coarse while the body or the camera moves, full once still.
+    """The resolution a preview is rendered at: coarse enough to hold a frame budget while the body or the camera
+    moves, full once still.
+
+    While things move, the schedule picks the finest integer downscale in ``[still, max_downscale]`` whose
+    predicted render time plus the last simulation step's time fits ``frame_budget``. The viewer reports each
+    render with :meth:`record`; the render time is modelled as proportional to the rendered pixels,
+    ``t(level) = c / level²`` with ``c`` the full-resolution cost (s), an exponential moving average of
+    ``seconds × level²`` over the renders. A fixed per-render cost makes this model overestimate finer levels, so
+    it errs towards coarse. The level changes only when the prediction at the current one misses the budget by more
+    than ``overrun`` or leaves more than ``slack`` of it unused, so a prediction that hovers at the budget keeps the
+    level. Until a render has been measured (the first one of a schedule is not: it pays one-off costs such as
+    kernel compilation), it renders at ``moving``. Once still, it renders once at ``still``, then nothing.
 
     Args:
-        moving: downscale while things move.
+        moving: downscale while things move until the render cost is known: the start level. It is also the
+            fixed moving level of the schedule when the viewer never calls :meth:`record`.
         still: downscale of the refined image.
         tolerance: generalized coordinates that changed less than this (m) since the last render count as still.
+        frame_budget: seconds one frame may take, the simulation step and the render together (1/30: 30 frames
+            per second).
+        max_downscale: the coarsest downscale while moving.
+        overrun: share of the budget the prediction may exceed before the level gets coarser.
+        slack: share of the budget the prediction may leave unused before the level gets finer.
+        smoothing: weight of the newest render in the moving average of the cost, in (0, 1].
     """
 
-    def __init__(self, moving: int = 4, still: int = 1, tolerance: float = 1e-4):
-        self.moving, self.still, self.tolerance = moving, still, tolerance
+    def __init__(
+        self,
+        moving: int = 4,
+        still: int = 1,
+        tolerance: float = 1e-4,
+        *,
+        frame_budget: float = 1.0 / 30.0,
+        max_downscale: int = 8,
+        overrun: float = 0.15,
+        slack: float = 0.3,
+        smoothing: float = 0.3,
+    ):
+        for name, value in (("moving", moving), ("still", still), ("max_downscale", max_downscale)):
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{name} must be an integer downscale >= 1, got {value!r}")
+        if not still <= moving <= max_downscale:
+            raise ValueError(
+                f"the downscales must satisfy still <= moving <= max_downscale, got {still}, {moving}, "
+                f"{max_downscale}; raise max_downscale or lower moving"
+            )
+        self.frame_budget = self.check_frame_budget(frame_budget)
+        for name, value, hi in (("overrun", overrun, math.inf), ("slack", slack, 1.0), ("smoothing", smoothing, 1.0)):
+            if not (isinstance(value, (int, float)) and 0.0 < value <= hi):
+                raise ValueError(f"{name} must be a number in (0, {hi:g}], got {value!r}")
+        self.moving, self.still, self.tolerance, self.max_downscale = moving, still, tolerance, max_downscale
+        self.overrun, self.slack, self.smoothing = float(overrun), float(slack), float(smoothing)
         self._q: torch.Tensor | None = None
         self._camera = None
         self._level: int | None = None
+        self._moving_level = moving
+        self._renders = 0
+        self.full_cost: float | None = None
+        """Moving average of the render time at downscale 1 (s), ``None`` until a render is measured."""
+        self.last_step_seconds = 0.0
+        """The last simulation step's time (s), as :meth:`record` was told."""
+
+    @staticmethod
+    def check_frame_budget(seconds: float) -> float:
+        """``seconds`` as a float when it is a usable frame budget (positive, finite), else a ValueError."""
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0.0 < seconds < math.inf:
+            raise ValueError(
+                f"frame_budget must be a positive number of seconds, e.g. 1/30 for 30 frames per second, "
+                f"got {seconds!r}"
+            )
+        return float(seconds)
+
+    def predicted_seconds(self, level: int) -> float | None:
+        """Predicted seconds of a frame rendered at downscale ``level``: the step plus the render, or ``None``
+        while no render has been measured."""
+        if self.full_cost is None:
+            return None
+        return self.last_step_seconds + self.full_cost / level**2
+
+    def record(self, level: int, render_seconds: float, step_seconds: float = 0.0) -> None:
+        """Learn from one render: it took ``render_seconds`` (s) at downscale ``level``, in a frame whose
+        simulation step took ``step_seconds`` (s; 0 when the simulation is paused)."""
+        if not (isinstance(level, int) and not isinstance(level, bool) and level >= 1):
+            raise ValueError(f"level must be the integer downscale the render used, got {level!r}")
+        for name, value in (("render_seconds", render_seconds), ("step_seconds", step_seconds)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0.0 <= value < math.inf:
+                raise ValueError(f"{name} must be a finite number of seconds >= 0, got {value!r}")
+        self.last_step_seconds = float(step_seconds)
+        self._renders += 1
+        if self._renders == 1:  # the first render pays one-off costs (compilation, caches): not a measure
+            return
+        cost = float(render_seconds) * level**2
+        if self.full_cost is None:
+            self.full_cost = cost
+        else:
+            self.full_cost += self.smoothing * (cost - self.full_cost)
+
+    @property
+    def moving_level(self) -> int:
+        """The downscale of the latest moving frame (``moving`` until the measured cost moves it)."""
+        return self._moving_level
+
+    def _adapt(self) -> int:
+        """The moving level for the next frame: kept while its prediction is within the band about the budget,
+        else the finest that fits (the coarsest when none does)."""
+        predicted = self.predicted_seconds(self._moving_level)
+        budget = self.frame_budget
+        if predicted is not None and not (1.0 - self.slack) * budget <= predicted <= (1.0 + self.overrun) * budget:
+            levels = range(self.still, self.max_downscale + 1)
+            fits = [level for level in levels if self.predicted_seconds(level) <= budget]
+            self._moving_level = fits[0] if fits else self.max_downscale
+        return self._moving_level
 
     def next(self, q: torch.Tensor, camera) -> int | None:
         """The downscale to render at now, or ``None`` when the shown image is already the refined one.
@@ -397,9 +497,17 @@ class RefinementSchedule:
             or float((q - self._q).abs().max()) > self.tolerance
         )
         if moved:
-            self._q, self._camera, self._level = q.detach().clone(), camera, self.moving
-            return self.moving
+            self._q, self._camera, self._level = q.detach().clone(), camera, self._adapt()
+            return self._level
         if self._level != self.still:
             self._level = self.still
             return self.still
         return None
+
+
+def step_seconds(report: StepReport) -> float:
+    """Seconds the solver step of ``report`` took: the device loop's whole time when it ran as one, else its
+    assembly, solve and other phases together."""
+    if report.device_loop:
+        return report.time_device_loop
+    return report.time_assembly + report.time_solve + report.time_other

@@ -1,7 +1,10 @@
-"""pienerf.preview: the refinement schedule renders coarse while things move and refines once when still."""
+"""pienerf.preview: the refinement schedule holds a frame budget while things move and refines once when still."""
 
 from __future__ import annotations
 
+import math
+
+import pytest
 import torch
 
 from pienerf.preview import RefinementSchedule
@@ -16,3 +19,75 @@ def test_refinement_schedule_is_coarse_while_moving_and_refines_once_when_still(
     assert schedule.next(q + 1e-3, "view a") == 4, "the body moved"
     assert schedule.next(q + 1e-3, "view b") == 4, "the camera moved"
     assert [schedule.next(q + 1e-3, "view b") for _ in range(3)] == [1, None, None]
+
+
+def _drag(schedule: RefinementSchedule, render_seconds, step_seconds: float, frames: int) -> list[int]:
+    """Levels of ``frames`` moving frames, each render reported as taking ``render_seconds(level)``."""
+    q, levels = torch.zeros(5, 3, dtype=torch.float64), []
+    for frame in range(frames):
+        level = schedule.next(q + 1e-2 * (frame + 1), "view")
+        levels.append(level)
+        schedule.record(level, render_seconds(level), step_seconds)
+    return levels
+
+
+def _pixels(cost_per_pixel: float, width: int = 320, height: int = 240):
+    """A renderer whose time is proportional to the pixels it renders at a downscale."""
+    return lambda level: cost_per_pixel * math.ceil(width / level) * math.ceil(height / level)
+
+
+def test_a_slow_render_drives_the_level_coarser_until_the_frame_budget_holds():
+    budget, step = 1 / 30, 0.008
+    render = _pixels(2e-6)  # 0.15 s at full resolution: level 3 fits (0.017 + 0.008 s), level 2 does not
+    levels = _drag(RefinementSchedule(frame_budget=budget), render, step, 12)
+    assert levels[:2] == [4, 4], "the start level until a render is measured (the first is not)"
+    assert set(levels[2:]) == {3}, levels
+    assert step + render(3) <= budget < step + render(2), "the finest level that fits"
+
+    schedule = RefinementSchedule(frame_budget=budget)
+    slower = _drag(schedule, _pixels(4e-5), step, 12)
+    assert set(slower[2:]) == {8} and schedule.predicted_seconds(8) > budget, f"nothing fits: the coarsest {slower}"
+
+
+def test_a_fast_render_drives_the_level_down_to_full_resolution():
+    levels = _drag(RefinementSchedule(moving=4, still=1, frame_budget=1 / 30), _pixels(1e-7), 0.005, 8)
+    assert levels[:2] == [4, 4] and set(levels[2:]) == {1}, levels
+
+
+def test_still_refines_once_at_full_resolution_then_renders_nothing():
+    schedule = RefinementSchedule(frame_budget=1 / 30)
+    levels = _drag(schedule, _pixels(2e-6), 0.008, 6)
+    assert levels[-1] == 3
+    q = torch.zeros(5, 3, dtype=torch.float64) + 6e-2
+    assert [schedule.next(q, "view") for _ in range(3)] == [1, None, None]
+    assert schedule.next(q + 1e-2, "view") == 3, "moving again: the learned level, not the start one"
+
+
+def test_a_prediction_hovering_at_the_budget_keeps_the_level():
+    budget, step = 1 / 30, 0.005
+    at_3 = _pixels(1.0)(3)
+    schedule, q = RefinementSchedule(moving=3, frame_budget=budget), torch.zeros(5, 3, dtype=torch.float64)
+    levels, missed = [], False
+    for frame, factor in enumerate(([0.88] * 5 + [1.12] * 5) * 3):
+        level = schedule.next(q + 1e-2 * (frame + 1), "view")
+        levels.append(level)
+        # a render that fills the frame budget at level 3, give or take 12 %
+        schedule.record(level, factor * (budget - step) * _pixels(1.0)(level) / at_3, step)
+        missed |= (schedule.predicted_seconds(3) or 0.0) > budget
+    assert missed, "the prediction at level 3 went over the budget at times"
+    assert set(levels) == {3}, f"the level flip-flops: {levels}"
+
+
+def test_bad_budgets_and_levels_are_refused_with_the_fix():
+    for budget in (0.0, -1 / 30, math.inf, math.nan, "fast"):
+        with pytest.raises(ValueError, match="frame_budget must be a positive number of seconds"):
+            RefinementSchedule(frame_budget=budget)
+    with pytest.raises(ValueError, match="raise max_downscale or lower moving"):
+        RefinementSchedule(moving=16)
+    with pytest.raises(ValueError, match="integer downscale"):
+        RefinementSchedule(moving=2.5)
+    schedule = RefinementSchedule()
+    with pytest.raises(ValueError, match="render_seconds must be a finite number of seconds"):
+        schedule.record(4, -0.01)
+    with pytest.raises(ValueError, match="level must be the integer downscale"):
+        schedule.record(0, 0.01)
