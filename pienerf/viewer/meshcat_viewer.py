@@ -31,6 +31,7 @@ import io
 import math
 import sys
 import threading
+import time
 
 import meshcat.geometry as g
 import numpy as np
@@ -42,7 +43,7 @@ from PIL import Image
 
 from pienerf.cameras import pinhole_camera
 from pienerf.data import Cameras
-from pienerf.preview import RefinementSchedule
+from pienerf.preview import RefinementSchedule, step_seconds
 from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, si_text
 from pienerf.viewer.meshcat_server import MeshcatServer
 
@@ -114,9 +115,19 @@ class MeshcatViewer:
         host, port: where the page is served (port 0 picks a free one; see :attr:`port` and :attr:`url`).
         nerf_height: height in pixels of the NeRF images rendered for each tab (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
+        frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
+            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`).
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        nerf_height: int = 240,
+        background=(1.0, 1.0, 1.0),
+        frame_budget: float = 1.0 / 30.0,
+    ):
+        self._frame_budget = RefinementSchedule.check_frame_budget(frame_budget)  # before the server starts
         self.app = None
         self.nerf_height = int(nerf_height)
         self.background = torch.tensor(background, dtype=torch.float32)
@@ -131,6 +142,18 @@ class MeshcatViewer:
         self.message = ""  # the last one shown
         self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
         self.port, self.url = self.server.port, self.server.url
+
+    @property
+    def frame_budget(self) -> float:
+        """Seconds a frame of the NeRF mode may take while things move (the schedules start again from a new
+        value)."""
+        return self._frame_budget
+
+    @frame_budget.setter
+    def frame_budget(self, seconds: float) -> None:
+        self._frame_budget = RefinementSchedule.check_frame_budget(seconds)
+        with self._lock:
+            self._schedules.clear()
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -363,7 +386,7 @@ class MeshcatViewer:
                 self._send_particles(sim)
             send(_vertices_command(_PARTICLES, positions), key=f"vertices {_PARTICLES.lower()}", volatile=True)
         elif "nerf" in sim.render_backends:
-            self._update_nerf(sim)
+            self._update_nerf(sim, 0.0 if app.paused else step_seconds(sim.last_report))
         target = sim.drag_target
         if target is not None:
             matrix = np.eye(4)
@@ -386,19 +409,23 @@ class MeshcatViewer:
             volatile=True,
         )
 
-    def _update_nerf(self, sim) -> None:
-        """Render the warped NeRF from every tab's camera: coarse while things move, refined when still."""
+    def _update_nerf(self, sim, step: float) -> None:
+        """Render the warped NeRF from every tab's camera: as coarse as the frame budget asks while things move
+        (this frame's step took ``step`` s), refined when still."""
         renderer = sim.render_backends["nerf"]
         with self._lock:
             views = dict(self._cameras)
         for client, view in views.items():
             with self._lock:
-                schedule = self._schedules.setdefault(client, RefinementSchedule())
+                schedule = self._schedules.setdefault(client, RefinementSchedule(frame_budget=self.frame_budget))
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue
             renderer.downscale = level
-            frame = sim.render(page_cameras(*view, self.nerf_height), 0, "nerf")
+            cameras = page_cameras(*view, self.nerf_height)
+            clock = time.perf_counter()
+            frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
+            schedule.record(level, time.perf_counter() - clock, step)
             alpha = frame.rgba[..., 3:]
             rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
             image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()

@@ -6,8 +6,8 @@ and a panel with the material (Young's modulus, Poisson ratio, density, model), 
 The press of a mouse drag picks a material point and the pointer, on the camera-aligned plane through it, is the
 drag target until release. A click picks too; a further click moves the target onto that ray at the picked depth,
 and the gizmo at the target moves it in 3-D. In the ``"nerf"`` render mode each client gets the warped NeRF
-rendered from its own camera as the page's background image with its depth, coarse while things move and refined
-once still (:class:`pienerf.preview.RefinementSchedule`).
+rendered from its own camera as the page's background image with its depth, while things move as coarse as the
+frame budget asks, refined once still (:class:`pienerf.preview.RefinementSchedule`).
 
 Every event becomes a command of the :class:`pienerf.viewer.loop.DemoApp`; this module holds no simulation logic.
 Every value from the page is range-checked as it arrives (:func:`pienerf.viewer.loop.control_value`); a bad one is
@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from pienerf.cameras import viser_cameras
-from pienerf.preview import RefinementSchedule
+from pienerf.preview import RefinementSchedule, step_seconds
 from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, DemoApp, control_value, si_text, vector3
 from pienerf.viewer.origin import check_address, checked_viser_server
 
@@ -91,10 +91,20 @@ class ViserViewer:
             ValueError, a port in use OSError, both naming the fix.
         nerf_height: height in pixels of the NeRF images rendered for each client (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
+        frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
+            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`).
     """
 
-    def __init__(self, host: str = "127.0.0.1", port: int = 8080, nerf_height: int = 240, background=(1.0, 1.0, 1.0)):
+    def __init__(
+        self,
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        nerf_height: int = 240,
+        background=(1.0, 1.0, 1.0),
+        frame_budget: float = 1.0 / 30.0,
+    ):
         check_address(host, port)
+        self._frame_budget = RefinementSchedule.check_frame_budget(frame_budget)  # before the server starts
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its address; the app prints the page's
             self.server, self.request_check = checked_viser_server(host, port)
         self.port = self.server.get_port()
@@ -112,6 +122,17 @@ class ViserViewer:
         self._schedules: dict[int, RefinementSchedule] = {}
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
+
+    @property
+    def frame_budget(self) -> float:
+        """Seconds a frame of the NeRF mode may take while things move (the schedules start again from a new
+        value)."""
+        return self._frame_budget
+
+    @frame_budget.setter
+    def frame_budget(self, seconds: float) -> None:
+        self._frame_budget = RefinementSchedule.check_frame_budget(seconds)
+        self._schedules.clear()
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -307,8 +328,9 @@ class ViserViewer:
             self.server.scene.set_background_image(None)
         self._schedules.clear()
 
-    def _update_nerf(self, sim) -> None:
-        """Render the warped NeRF from every client's camera: coarse while things move, refined when still."""
+    def _update_nerf(self, sim, step: float) -> None:
+        """Render the warped NeRF from every client's camera: as coarse as the frame budget asks while things move
+        (this frame's step took ``step`` s), refined when still."""
         renderer = sim.render_backends["nerf"]
         for client_id, client in self.server.get_clients().items():
             camera = client.camera
@@ -321,12 +343,15 @@ class ViserViewer:
                 )
             except AssertionError:  # the client has not sent its camera yet
                 continue
-            level = self._schedules.setdefault(client_id, RefinementSchedule()).next(sim.state.q, view)
+            schedule = self._schedules.setdefault(client_id, RefinementSchedule(frame_budget=self.frame_budget))
+            level = schedule.next(sim.state.q, view)
             if level is None:
                 continue
             renderer.downscale = level
             cameras = viser_cameras(camera.position, camera.wxyz, camera.fov, camera.aspect, self.nerf_height)
-            frame = sim.render(cameras, 0, "nerf")
+            clock = time.perf_counter()
+            frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
+            schedule.record(level, time.perf_counter() - clock, step)
             alpha = frame.rgba[..., 3:]
             rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
             z = cameras.axial_depth(0, frame.depth.cpu())  # viser composites by depth along the optical axis
@@ -379,7 +404,7 @@ class ViserViewer:
     def update(self, app: DemoApp) -> None:
         sim = app.simulation
         if app.render_mode == "nerf" and "nerf" in sim.render_backends:
-            self._update_nerf(sim)
+            self._update_nerf(sim, 0.0 if app.paused else step_seconds(sim.last_report))
         with self.server.atomic():
             if self.mesh.visible:
                 self.mesh.vertices = sim.deformed_mesh_vertices().numpy()

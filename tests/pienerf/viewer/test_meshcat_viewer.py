@@ -167,3 +167,38 @@ def test_resample_rebuilds_with_the_new_kernel_count(app):
     _send(app, type="resample", kernel_count=8)
     assert app.simulation.model.basis.kernel_count == 8
     assert app.errors == []
+
+
+def test_the_nerf_view_holds_the_frame_budget_by_its_resolution(device, tmp_path):
+    app = build_app("plant", "meshcat", "127.0.0.1", 0, smoke=True, render="nerf", cache_dir=str(tmp_path))
+    try:
+        viewer = app.viewer
+        app.paused = True  # only the camera moves
+        eye = np.eye(4)
+        eye[:3, 3] = app.simulation.centre.double().numpy() + np.array([0.0, 0.0, 3.0])
+
+        def look(shift: float) -> None:
+            matrix = eye.copy()
+            matrix[0, 3] += shift
+            camera = {"type": "camera", "matrix": matrix.T.reshape(-1).tolist(), "fov": 50.0, "aspect": 4 / 3}
+            viewer.on_message(CLIENT, camera)
+
+        with pytest.raises(ValueError, match="frame_budget must be a positive number of seconds"):
+            viewer.frame_budget = 0.0
+        # A budget no render can hold and one every render holds: the moving level goes to either end.
+        for budget, moving in ((1e-9, 8), (600.0, 1)):
+            viewer.frame_budget = budget
+            viewer.nerf_renders.clear()
+            for frame in range(4):
+                look(0.01 * (frame + 1))  # the camera moves every frame
+                app.tick()
+            renders = viewer.nerf_renders
+            assert renders[:2] == [4, 4] and set(renders[2:]) == {moving}, f"budget {budget} s: {renders}"
+        viewer.frame_budget = 1e-9  # a new budget starts the schedules again
+        viewer.nerf_renders.clear()
+        for _ in range(3):  # the camera stays
+            app.tick()
+        assert viewer.nerf_renders == [4, 1], "the start level, then refined once when still, then nothing"
+        assert not app.errors, app.errors
+    finally:
+        app.viewer.close()
