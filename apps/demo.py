@@ -3,6 +3,7 @@
     python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|PATH] [--device cpu|cuda]
                         [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
+                        [--frame-budget-ms 33.3]
 
 ``meshcat`` (default) serves meshcat's own three.js client under a page of the project
 (:class:`pienerf.viewer.meshcat_viewer.MeshcatViewer`): the deformed scene mesh updated every frame, a panel with the
@@ -18,14 +19,16 @@ headless and exits 0.
 ``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
 ``particles`` are drawn by the browser; ``nerf`` is a NeRF of the scene warped by the body's deformation (quadratic
 ray warping, PIE-NeRF Eq. 19–21), rendered on the server from each client's camera and shown as the page's
-background image with its depth. While the body or the camera moves it is rendered at a quarter of the resolution,
-then once at full resolution when still. The NeRF is trained on the scene's own rendered views the first time, with
-progress in the terminal (or, when switched on in the panel, in a separate process while the simulation goes on,
-with progress in the panel), and cached as a checkpoint under the scene cache (``--cache-dir``, default
-``$PIE_CACHE_DIR`` or ``~/.cache/pie-physavatar``), so later starts load it; ``--nerf-checkpoint`` loads a given one
-instead (trained in the scene's coordinates). The default stays ``mesh``: on a CPU the first fit takes longer than a
-start may take (figures in ``docs/benchmarks.md``); later starts load the cached checkpoint. In viser's NeRF mode
-the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
+background image with its depth. While the body or the camera moves it is rendered as coarse as needed for the step
+and the render to fit in ``--frame-budget-ms`` (default 33.3 ms, 30 frames/s; the resolution adapts to the measured
+render time, starting at a quarter), then once at full resolution when still. The NeRF is trained on the scene's own
+rendered views the first time, with progress in the terminal (or, when switched on in the panel, in a separate
+process while the simulation goes on, with progress in the panel), and cached as a checkpoint under the scene cache
+(``--cache-dir``, default ``$PIE_CACHE_DIR`` or ``~/.cache/pie-physavatar``), so later starts load it;
+``--nerf-checkpoint`` loads a given one instead (trained in the scene's coordinates). The default stays ``mesh``: on
+a CPU the first fit takes longer than a start may take (figures in ``docs/benchmarks.md``); later starts load the
+cached checkpoint. In viser's NeRF mode the body is picked by clicking (the mouse-drag handle belongs to the hidden
+mesh).
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
@@ -37,6 +40,7 @@ flags and starts it.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
@@ -86,11 +90,23 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--nerf-checkpoint", default=None, help="a trained NeRF checkpoint to render instead")
     parser.add_argument("--cache-dir", default=None, help="cache of scene renders and NeRF checkpoints")
+    parser.add_argument(
+        "--frame-budget-ms",
+        type=float,
+        default=1e3 / 30.0,
+        help="milliseconds a NeRF frame may take while things move, step and render together (its resolution "
+        "adapts to hold it)",
+    )
     args = parser.parse_args(argv)
     try:
         check_address(args.host, args.port)
     except ValueError as error:
         parser.error(str(error))
+    if not 0.0 < args.frame_budget_ms < math.inf:
+        parser.error(
+            f"--frame-budget-ms must be a positive number of milliseconds (33.3: 30 frames/s), "
+            f"got {args.frame_budget_ms}"
+        )
     backend.init(args.device)
     try:
         with _TerminalProgress() as progress:
@@ -108,6 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as error:  # a bad scene or value, a missing file, a port in use
         print(f"error: {error.strerror if isinstance(error, OSError) and error.strerror else error}", file=sys.stderr)
         return 2
+    app.viewer.frame_budget = args.frame_budget_ms / 1e3
     if args.smoke:
         app.run(steps=3)
         app.close()

@@ -1,5 +1,5 @@
-"""apps.demo: the smoke runs exit 0, with the mesh and with the NeRF render mode; a bad or busy port stops the
-start at once with the fix."""
+"""apps.demo: the smoke runs exit 0, with the mesh and with the NeRF render mode; a bad or busy port, or a frame
+budget that is not positive, stops the start at once with the fix."""
 
 from __future__ import annotations
 
@@ -62,6 +62,18 @@ def test_a_port_out_of_range_is_refused_with_the_fix():
         timeout=120,
     )
     assert result.returncode == 2 and "port 99999 is not a TCP port" in result.stderr and "--port N" in result.stderr
+
+
+@pytest.mark.parametrize("budget", ["0", "-5", "nan"])
+def test_a_frame_budget_that_is_not_positive_is_refused_with_the_fix(budget):
+    result = subprocess.run(
+        [sys.executable, "-m", "apps.demo", "--smoke", "--frame-budget-ms", budget],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2 and "--frame-budget-ms must be a positive number of milliseconds" in result.stderr
 
 
 @pytest.mark.parametrize("viewer", ["meshcat", "viser"])
