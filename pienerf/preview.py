@@ -375,13 +375,16 @@ class RefinementSchedule:
 
     While things move, the schedule picks the finest integer downscale in ``[still, max_downscale]`` whose
     predicted render time plus the last simulation step's time fits ``frame_budget``. The viewer reports each
-    render with :meth:`record`; the render time is modelled as proportional to the rendered pixels,
-    ``t(level) = c / level²`` with ``c`` the full-resolution cost (s), an exponential moving average of
-    ``seconds × level²`` over the renders. A fixed per-render cost makes this model overestimate finer levels, so
-    it errs towards coarse. The level changes only when the prediction at the current one misses the budget by more
-    than ``overrun`` or leaves more than ``slack`` of it unused, so a prediction that hovers at the budget keeps the
-    level. Until a render has been measured (the first one of a schedule is not: it pays one-off costs such as
-    kernel compilation), it renders at ``moving``. Once still, it renders once at ``still``, then nothing.
+    render with :meth:`record`; the schedule keeps an exponential moving average of the render time at every
+    level it has seen and fits ``t(level) = a + c / level²`` to them (least squares, ``a, c >= 0``): ``a`` the cost
+    of a render whatever its size (set-up, encoding, sending), ``c`` the cost of the full-resolution pixels. With one
+    level seen, ``a = 0``. When no level fits, it takes the finest level within ``overrun`` of the coarsest one's
+    time: where the fixed cost dominates, a coarser image would cost sharpness and gain no frames (on an H100 the
+    viewer's NeRF frame at 640 × 480 was bound by such costs at every level from 4 to 8). The level changes only
+    when the prediction at the current one misses the budget by more than ``overrun`` or leaves more than ``slack``
+    of it unused, so a prediction that hovers at the budget keeps the level. Until a render has been measured (the
+    first one of a schedule is not: it pays one-off costs such as kernel compilation), it renders at ``moving``.
+    Once still, it renders once at ``still``, then nothing.
 
     Args:
         moving: downscale while things move until the render cost is known: the start level. It is also the
@@ -427,8 +430,11 @@ class RefinementSchedule:
         self._level: int | None = None
         self._moving_level = moving
         self._renders = 0
+        self._seconds_at: dict[int, float] = {}  # moving average of the render time at each level seen, s
+        self.fixed_cost: float | None = None
+        """``a`` of the fitted render time ``a + c / level²`` (s), ``None`` until a render is measured."""
         self.full_cost: float | None = None
-        """Moving average of the render time at downscale 1 (s), ``None`` until a render is measured."""
+        """``c`` of the fitted render time: the pixels of a full-resolution render (s), ``None`` until measured."""
         self.last_step_seconds = 0.0
         """The last simulation step's time (s), as :meth:`record` was told."""
 
@@ -445,9 +451,9 @@ class RefinementSchedule:
     def predicted_seconds(self, level: int) -> float | None:
         """Predicted seconds of a frame rendered at downscale ``level``: the step plus the render, or ``None``
         while no render has been measured."""
-        if self.full_cost is None:
+        if self.full_cost is None or self.fixed_cost is None:
             return None
-        return self.last_step_seconds + self.full_cost / level**2
+        return self.last_step_seconds + self.fixed_cost + self.full_cost / level**2
 
     def record(self, level: int, render_seconds: float, step_seconds: float = 0.0) -> None:
         """Learn from one render: it took ``render_seconds`` (s) at downscale ``level``, in a frame whose
@@ -461,11 +467,27 @@ class RefinementSchedule:
         self._renders += 1
         if self._renders == 1:  # the first render pays one-off costs (compilation, caches): not a measure
             return
-        cost = float(render_seconds) * level**2
-        if self.full_cost is None:
-            self.full_cost = cost
-        else:
-            self.full_cost += self.smoothing * (cost - self.full_cost)
+        seconds = float(render_seconds)
+        average = self._seconds_at.get(level)
+        self._seconds_at[level] = seconds if average is None else average + self.smoothing * (seconds - average)
+        self.fixed_cost, self.full_cost = self._fit()
+
+    def _fit(self) -> tuple[float, float]:
+        """``(a, c)`` of ``t(level) = a + c / level²`` by least squares over the levels' averages, both ``>= 0``."""
+        u = [1.0 / level**2 for level in self._seconds_at]
+        t = list(self._seconds_at.values())
+        n = len(t)
+        if n == 1:
+            return 0.0, t[0] / u[0]
+        mean_u, mean_t = sum(u) / n, sum(t) / n
+        var_u = sum((x - mean_u) ** 2 for x in u)
+        c = sum((x - mean_u) * (y - mean_t) for x, y in zip(u, t, strict=True)) / var_u
+        a = mean_t - c * mean_u
+        if a < 0.0:  # through the origin
+            return 0.0, sum(x * y for x, y in zip(u, t, strict=True)) / sum(x * x for x in u)
+        if c < 0.0:  # no cost per pixel to be seen
+            return mean_t, 0.0
+        return a, c
 
     @property
     def moving_level(self) -> int:
@@ -474,13 +496,17 @@ class RefinementSchedule:
 
     def _adapt(self) -> int:
         """The moving level for the next frame: kept while its prediction is within the band about the budget,
-        else the finest that fits (the coarsest when none does)."""
+        else the finest that fits (when none does, the finest within ``overrun`` of the coarsest's time)."""
         predicted = self.predicted_seconds(self._moving_level)
         budget = self.frame_budget
         if predicted is not None and not (1.0 - self.slack) * budget <= predicted <= (1.0 + self.overrun) * budget:
             levels = range(self.still, self.max_downscale + 1)
             fits = [level for level in levels if self.predicted_seconds(level) <= budget]
-            self._moving_level = fits[0] if fits else self.max_downscale
+            if fits:
+                self._moving_level = fits[0]
+            else:  # the finest level that is not much slower than the coarsest
+                floor = self.predicted_seconds(self.max_downscale) * (1.0 + self.overrun)
+                self._moving_level = next(level for level in levels if self.predicted_seconds(level) <= floor)
         return self._moving_level
 
     def next(self, q: torch.Tensor, camera) -> int | None:

@@ -49,6 +49,25 @@ def test_a_slow_render_drives_the_level_coarser_until_the_frame_budget_holds():
     assert set(slower[2:]) == {8} and schedule.predicted_seconds(8) > budget, f"nothing fits: the coarsest {slower}"
 
 
+def test_a_render_bound_by_its_fixed_cost_keeps_its_sharpness():
+    """When a render costs about the same at every size (set-up, encoding), no coarser level would buy frames:
+    the schedule keeps the finest level within ``overrun`` of the coarsest one's time instead of the coarsest."""
+    budget, step = 1 / 30, 0.008
+    pixels = _pixels(1e-8)  # 0.8 ms of pixels at full resolution, on top of a fixed 45 ms
+    schedule = RefinementSchedule(frame_budget=budget)
+    levels = _drag(schedule, lambda level: 0.045 + pixels(level), step, 12)
+    assert schedule.predicted_seconds(8) > budget, "nothing fits"
+    assert set(levels[3:]) == {1}, levels
+    assert schedule.fixed_cost == pytest.approx(0.045, rel=1e-3)
+
+    # a fixed cost beside a large per-pixel one: the coarser levels still pay, up to where they stop paying
+    mixed = RefinementSchedule(frame_budget=budget)
+    levels = _drag(mixed, lambda level: 0.045 + _pixels(5e-7)(level), step, 12)
+    finest = levels[-1]
+    assert 1 < finest < 8 and set(levels[4:]) == {finest}, levels
+    assert mixed.predicted_seconds(finest) <= 1.15 * mixed.predicted_seconds(8) < mixed.predicted_seconds(finest - 1)
+
+
 def test_a_fast_render_drives_the_level_down_to_full_resolution():
     levels = _drag(RefinementSchedule(moving=4, still=1, frame_budget=1 / 30), _pixels(1e-7), 0.005, 8)
     assert levels[:2] == [4, 4] and set(levels[2:]) == {1}, levels
