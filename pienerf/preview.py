@@ -34,7 +34,7 @@ from pienerf.nerf import OccupancyGrid
 from pienerf.picking import PickSurface
 from pienerf.render import MODES, DeformedRenderer, GroundPlane
 from pienerf.scenes import LIGHT_DIRECTION
-from pienerf.solver import PlaneCollider, SphereCollider, StepReport
+from pienerf.solver import PlaneCollider, SphereCollider
 
 __all__ = [
     "Frame",
@@ -43,7 +43,6 @@ __all__ = [
     "ParticleRenderBackend",
     "RefinementSchedule",
     "RenderBackend",
-    "step_seconds",
 ]
 
 
@@ -530,10 +529,3 @@ class RefinementSchedule:
             return self.still
         return None
 
-
-def step_seconds(report: StepReport) -> float:
-    """Seconds the solver step of ``report`` took: the device loop's whole time when it ran as one, else its
-    assembly, solve and other phases together."""
-    if report.device_loop:
-        return report.time_device_loop
-    return report.time_assembly + report.time_solve + report.time_other

@@ -212,6 +212,11 @@ class StepReport:
     time_device_loop: float = 0.0
 
     @property
+    def time_step(self) -> float:
+        """Seconds the whole step took: the device loop's time when it ran as one, else its phases together."""
+        return self.time_device_loop if self.device_loop else self.time_assembly + self.time_solve + self.time_other
+
+    @property
     def line_search_failed(self) -> bool:
         """Whether a line search of this step could not move (see ``line_search_failure``)."""
         return bool(self.line_search_failure)

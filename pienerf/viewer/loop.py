@@ -21,7 +21,7 @@ from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf import NGPConfig
 from pienerf.nerf_fit import NerfFit, scene_nerf
-from pienerf.preview import RenderBackend
+from pienerf.preview import Frame, RefinementSchedule, RenderBackend
 from pienerf.scenes import SCENES
 from pienerf.session import Simulation
 from pienerf.train import TrainConfig, load_checkpoint
@@ -34,6 +34,7 @@ __all__ = [
     "Viewer",
     "control_value",
     "load_nerf",
+    "render_nerf_in_budget",
     "si_text",
     "smoke_fit",
     "vector3",
@@ -69,6 +70,17 @@ def si_text(value: float, unit: str) -> str:
         if abs(value) >= factor:
             return f"{value / factor:.3g} {prefix}{unit}"
     return f"{value:.3g} {unit}"
+
+
+def render_nerf_in_budget(app: DemoApp, schedule: RefinementSchedule, cameras, level: int) -> Frame:
+    """The warped NeRF of ``app``'s simulation seen by ``cameras`` at downscale ``level``. The render's time and this
+    frame's step (none while paused) go to ``schedule``, which picks the next moving level by them."""
+    sim = app.simulation
+    sim.render_backends["nerf"].downscale = level
+    clock = time.perf_counter()
+    frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
+    schedule.record(level, time.perf_counter() - clock, 0.0 if app.paused else sim.last_report.time_step)
+    return frame
 
 
 def vector3(value, what: str) -> np.ndarray:

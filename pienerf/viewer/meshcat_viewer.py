@@ -31,7 +31,6 @@ import io
 import math
 import sys
 import threading
-import time
 
 import meshcat.geometry as g
 import numpy as np
@@ -43,8 +42,8 @@ from PIL import Image
 
 from pienerf.cameras import pinhole_camera
 from pienerf.data import Cameras
-from pienerf.preview import RefinementSchedule, step_seconds
-from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, si_text
+from pienerf.preview import RefinementSchedule
+from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, render_nerf_in_budget, si_text
 from pienerf.viewer.meshcat_server import MeshcatServer
 
 __all__ = ["Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
@@ -386,7 +385,7 @@ class MeshcatViewer:
                 self._send_particles(sim)
             send(_vertices_command(_PARTICLES, positions), key=f"vertices {_PARTICLES.lower()}", volatile=True)
         elif "nerf" in sim.render_backends:
-            self._update_nerf(sim, 0.0 if app.paused else step_seconds(sim.last_report))
+            self._update_nerf(app)
         target = sim.drag_target
         if target is not None:
             matrix = np.eye(4)
@@ -409,10 +408,10 @@ class MeshcatViewer:
             volatile=True,
         )
 
-    def _update_nerf(self, sim, step: float) -> None:
-        """Render the warped NeRF from every tab's camera: as coarse as the frame budget asks while things move
-        (this frame's step took ``step`` s), refined when still."""
-        renderer = sim.render_backends["nerf"]
+    def _update_nerf(self, app) -> None:
+        """Render the warped NeRF from every tab's camera: as coarse as the frame budget asks while things move,
+        refined when still."""
+        sim = app.simulation
         with self._lock:
             views = dict(self._cameras)
         for client, view in views.items():
@@ -421,11 +420,7 @@ class MeshcatViewer:
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue
-            renderer.downscale = level
-            cameras = page_cameras(*view, self.nerf_height)
-            clock = time.perf_counter()
-            frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
-            schedule.record(level, time.perf_counter() - clock, step)
+            frame = render_nerf_in_budget(app, schedule, page_cameras(*view, self.nerf_height), level)
             alpha = frame.rgba[..., 3:]
             rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
             image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()

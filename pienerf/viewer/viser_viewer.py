@@ -32,8 +32,16 @@ import numpy as np
 import torch
 
 from pienerf.cameras import viser_cameras
-from pienerf.preview import RefinementSchedule, step_seconds
-from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, DemoApp, control_value, si_text, vector3
+from pienerf.preview import RefinementSchedule
+from pienerf.viewer.loop import (
+    CONTROL_RANGES,
+    RENDER_MODES,
+    DemoApp,
+    control_value,
+    render_nerf_in_budget,
+    si_text,
+    vector3,
+)
 from pienerf.viewer.origin import check_address, checked_viser_server
 
 __all__ = ["ViserViewer"]
@@ -328,10 +336,10 @@ class ViserViewer:
             self.server.scene.set_background_image(None)
         self._schedules.clear()
 
-    def _update_nerf(self, sim, step: float) -> None:
-        """Render the warped NeRF from every client's camera: as coarse as the frame budget asks while things move
-        (this frame's step took ``step`` s), refined when still."""
-        renderer = sim.render_backends["nerf"]
+    def _update_nerf(self, app: DemoApp) -> None:
+        """Render the warped NeRF from every client's camera: as coarse as the frame budget asks while things move,
+        refined when still."""
+        sim = app.simulation
         for client_id, client in self.server.get_clients().items():
             camera = client.camera
             try:
@@ -347,11 +355,8 @@ class ViserViewer:
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue
-            renderer.downscale = level
             cameras = viser_cameras(camera.position, camera.wxyz, camera.fov, camera.aspect, self.nerf_height)
-            clock = time.perf_counter()
-            frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
-            schedule.record(level, time.perf_counter() - clock, step)
+            frame = render_nerf_in_budget(app, schedule, cameras, level)
             alpha = frame.rgba[..., 3:]
             rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
             z = cameras.axial_depth(0, frame.depth.cpu())  # viser composites by depth along the optical axis
@@ -404,7 +409,7 @@ class ViserViewer:
     def update(self, app: DemoApp) -> None:
         sim = app.simulation
         if app.render_mode == "nerf" and "nerf" in sim.render_backends:
-            self._update_nerf(sim, 0.0 if app.paused else step_seconds(sim.last_report))
+            self._update_nerf(app)
         with self.server.atomic():
             if self.mesh.visible:
                 self.mesh.vertices = sim.deformed_mesh_vertices().numpy()

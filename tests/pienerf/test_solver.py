@@ -15,6 +15,7 @@ from pienerf.solver import (
     SolverConfig,
     SolverQGMLS,
     SphereCollider,
+    StepReport,
 )
 
 
@@ -304,3 +305,9 @@ def test_kept_factor_reaches_newtons_steps_and_is_renewed_when_it_stops_serving(
     assert all(not reused[i] for i in range(len(reused)) if i >= 3 and all(reused[i - 3:i]))  # at most 3 reuses
     with pytest.raises(ValueError, match="factor_reuse needs rayleigh_beta = 0"):
         SolverConfig(factor_reuse=2, rayleigh_beta=0.1)
+
+
+def test_a_step_report_times_the_whole_step_either_way():
+    host = StepReport(time_assembly=0.25, time_solve=0.5, time_other=0.125)
+    assert host.time_step == 0.875, "the host loop's phases together"
+    assert StepReport(device_loop=True, time_device_loop=0.3).time_step == 0.3, "the device loop as a whole"
