@@ -33,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -460,25 +461,39 @@ class Trainer:
         h, w = cameras.height, cameras.width
         return {"rgb": out["rgb"].view(h, w, 3), "opacity": out["opacity"].view(h, w), "depth": out["depth"].view(h, w)}
 
-    @torch.no_grad()
-    def evaluate(self, dataset: NerfDataset, max_views: int | None = None) -> dict[str, float]:
-        """Mean PSNR (dB) and SSIM over held-out views, rendered over the dataset's background colour.
+    def view_scores(
+        self, dataset: NerfDataset, max_views: int | None = None, chunk: int = 4096
+    ) -> Iterator[tuple[float, float, torch.Tensor]]:
+        """Render held-out views over the dataset's background colour one by one and score each against its image.
+
+        Args:
+            dataset: the views, composited over a solid background.
+            max_views: score only the first this many (``None``: all).
+            chunk: rays rendered at a time.
+
+        Yields:
+            Each view's PSNR (dB), SSIM and render ``[H, W, 3]`` in [0, 1] on the backend device.
 
         Raises:
-            ValueError: the dataset's background is ``"random"`` (the renders could not match it).
+            ValueError: the dataset's background is ``"random"`` (the renders could not match it), or it has no views.
         """
         if isinstance(dataset.background, str):
             raise ValueError(
-                "evaluate needs views composited over a solid background; load them with background=(r, g, b)"
+                "scoring needs views composited over a solid background; load them with background=(r, g, b) or "
+                "recomposite them with NerfDataset.over_background"
             )
         views = len(dataset) if max_views is None else min(max_views, len(dataset))
-        scores = {"psnr": [], "ssim": []}
+        if views < 1:
+            raise ValueError(f"no views to score (the dataset has {len(dataset)}, max_views={max_views})")
         for i in range(views):
-            rgb = self.render_view(dataset.cameras, i, dataset.background)["rgb"].clamp(0.0, 1.0)
+            rgb = self.render_view(dataset.cameras, i, dataset.background, chunk=chunk)["rgb"].clamp(0.0, 1.0)
             target = dataset.images[i].to(self.device)
-            scores["psnr"].append(float(psnr(rgb, target)))
-            scores["ssim"].append(float(ssim(rgb, target)))
-        return {key: sum(values) / len(values) for key, values in scores.items()}
+            yield float(psnr(rgb, target)), float(ssim(rgb, target)), rgb
+
+    def evaluate(self, dataset: NerfDataset, max_views: int | None = None) -> dict[str, float]:
+        """Mean PSNR (dB) and SSIM over held-out views (:meth:`view_scores`)."""
+        scores = [(p, s) for p, s, _ in self.view_scores(dataset, max_views)]  # the renders go as they come
+        return {"psnr": sum(p for p, _ in scores) / len(scores), "ssim": sum(s for _, s in scores) / len(scores)}
 
 
 def _premultiplied(dataset: NerfDataset) -> tuple[torch.Tensor, torch.Tensor]:

@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from kernels import backend
-from kernels.image_metrics import psnr, ssim
 from pienerf.data import NerfDataset
 from pienerf.output_files import atomic_path
 from pienerf.train import Trainer
@@ -35,7 +34,6 @@ __all__ = [
     "TrainingCurve",
     "error_heat_map",
     "error_panel",
-    "score_views",
     "train_curve",
     "write_error_images",
 ]
@@ -99,32 +97,6 @@ class TrainingCurve:
         return None
 
 
-@torch.no_grad()
-def score_views(
-    trainer: Trainer, views: NerfDataset, chunk: int = 4096
-) -> tuple[list[float], list[float], torch.Tensor]:
-    """Render every view of ``views`` over its background and score it against its image.
-
-    Args:
-        trainer: the trainer whose field and occupancy grid render.
-        views: the views to score, composited over a solid background (:meth:`NerfDataset.over_background`).
-        chunk: rays rendered at a time.
-
-    Returns:
-        PSNR (dB) and SSIM of each view, and the renders ``[V, H, W, 3]`` in [0, 1] on the backend device.
-    """
-    if isinstance(views.background, str) or len(views) == 0:
-        raise ValueError("score_views needs at least one view over a solid background (NerfDataset.over_background)")
-    renders, view_psnr, view_ssim = [], [], []
-    for i in range(len(views)):
-        rgb = trainer.render_view(views.cameras, i, views.background, chunk=chunk)["rgb"].clamp(0.0, 1.0)
-        target = views.images[i].to(rgb.device)
-        view_psnr.append(float(psnr(rgb, target)))
-        view_ssim.append(float(ssim(rgb, target)))
-        renders.append(rgb)
-    return view_psnr, view_ssim, torch.stack(renders)
-
-
 def train_curve(
     trainer: Trainer,
     views: NerfDataset,
@@ -161,7 +133,9 @@ def train_curve(
             trainer.train_step(stats=False)
         backend.synchronize()
         clock += time.perf_counter() - start
-        view_psnr, view_ssim, renders = score_views(trainer, views, chunk)
+        scored = list(trainer.view_scores(views, chunk=chunk))
+        view_psnr, view_ssim = [p for p, _, _ in scored], [s for _, s, _ in scored]
+        renders = torch.stack([rgb for _, _, rgb in scored])
         point = CurvePoint(
             clock, trainer.step, sum(view_psnr) / len(view_psnr), sum(view_ssim) / len(view_ssim), tuple(view_psnr)
         )
