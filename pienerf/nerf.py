@@ -29,7 +29,6 @@ step to choose, and agree with autograd to O(h²) inside a cell (``tests/pienerf
 
 from __future__ import annotations
 
-import copy
 from dataclasses import asdict, dataclass, field
 
 import torch
@@ -42,6 +41,7 @@ from pienerf.density import GRADIENT_CHUNK, DensityField
 
 __all__ = [
     "NGPConfig",
+    "InferenceMLP",
     "NGPField",
     "NerfDensity",
     "OccupancyGrid",
@@ -230,7 +230,8 @@ class NGPField(torch.nn.Module):
         if density_mlp is None:
             h = self.density_mlp(features)
         else:  # a copy, maybe of another dtype (float16): its inputs in its own
-            h = density_mlp(features.to(next(density_mlp.parameters()).dtype))
+            dtype = density_mlp.dtype if isinstance(density_mlp, InferenceMLP) else next(density_mlp.parameters()).dtype
+            h = density_mlp(features.to(dtype))
         inside = ((unit >= 0.0) & (unit <= 1.0)).all(dim=-1)
         # At least float32: under float16 autocast the MLP's outputs are float16, whose exp overflows at σ ≈ 6.5e4.
         sigma = torch.where(inside, truncated_exp(h[:, 0].to(torch.promote_types(h.dtype, torch.float32))), 0.0)
@@ -270,9 +271,58 @@ class NGPField(torch.nn.Module):
         return sigma, rgb
 
     def half_mlps(self) -> tuple[torch.nn.Module, torch.nn.Module]:
-        """Float16 copies ``(density, colour)`` of the MLPs, without gradients, for :meth:`radiance` (copies: they do
-        not follow later training)."""
-        return tuple(copy.deepcopy(mlp).half().requires_grad_(False) for mlp in (self.density_mlp, self.color_mlp))
+        """Float16 copies ``(density, colour)`` of the MLPs for :meth:`radiance`, for inference only
+        (:class:`InferenceMLP`; copies: they do not follow later training)."""
+        return tuple(InferenceMLP(mlp, torch.float16) for mlp in (self.density_mlp, self.color_mlp))
+
+
+class InferenceMLP(torch.nn.Module):
+    """A copy of one of :class:`NGPField`'s MLPs (bias-free ``Linear`` layers, ``ReLU`` between them, an optional
+    last ``Sigmoid``) for rendering, without gradients, in a chosen dtype.
+
+    On CUDA each hidden layer's ReLU runs in its matrix product's epilogue (cuBLASLt, through
+    ``torch._addmm_activation``): a layer's activations are then written once instead of being written, read and
+    written again by a separate ReLU, which cost a deformed 800² frame ~2.4 ms of its ~6 ms of MLP on an H100
+    (``docs/benchmarks.md``). Elsewhere the same products and ``relu_`` in place.
+
+    Args:
+        mlp: the field's ``torch.nn.Sequential``.
+        dtype: the copy's dtype (e.g. ``torch.float16``); its inputs are cast to it.
+    """
+
+    def __init__(self, mlp: torch.nn.Sequential, dtype: torch.dtype):
+        super().__init__()
+        kinds = [type(layer) for layer in mlp]
+        linear = [layer for layer in mlp if isinstance(layer, torch.nn.Linear)]
+        expected = [torch.nn.Linear] + [torch.nn.ReLU, torch.nn.Linear] * (len(linear) - 1)
+        if kinds not in (expected, expected + [torch.nn.Sigmoid]) or any(layer.bias is not None for layer in linear):
+            raise ValueError(f"InferenceMLP takes bias-free Linear layers with ReLU between them, got {kinds}")
+        self.dtype = dtype
+        self.sigmoid = kinds[-1] is torch.nn.Sigmoid
+        with torch.no_grad():
+            for i, layer in enumerate(linear):  # weights transposed once: x @ Wᵀ as addmm's [in, out] operand
+                self.register_buffer(f"weight{i}", layer.weight.detach().t().to(dtype).contiguous())
+        self.layers = len(linear)
+        self._zero: dict[int, torch.Tensor] = {}
+
+    def _weights(self) -> list[torch.Tensor]:
+        return [getattr(self, f"weight{i}") for i in range(self.layers)]
+
+    @torch.no_grad()
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = x.to(self.dtype)
+        weights = self._weights()
+        fused = x.is_cuda and hasattr(torch, "_addmm_activation")
+        for w in weights[:-1]:
+            if fused:  # relu(0 + x W) in the product's epilogue
+                zero = self._zero.get(w.shape[1])
+                if zero is None or zero.device != w.device:
+                    zero = self._zero[w.shape[1]] = w.new_zeros(w.shape[1])
+                x = torch._addmm_activation(zero, x, w)
+            else:
+                x = torch.relu_(x @ w)
+        x = x @ weights[-1]
+        return torch.sigmoid(x) if self.sigmoid else x
 
 
 class OccupancyGrid(torch.nn.Module):

@@ -489,7 +489,9 @@ def test_radiance_with_float16_mlp_copies_matches_the_field(device):
     d = torch.nn.functional.normalize(torch.randn(512, 3, generator=generator), dim=-1).to(x.device)
     encoded = field.encode_directions(d)
     mlps = field.half_mlps()
-    assert all(p.dtype == torch.float16 and not p.requires_grad for mlp in mlps for p in mlp.parameters())
+    weights = [w for mlp in mlps for w in mlp.buffers()]
+    linear = [m for mlp in (field.density_mlp, field.color_mlp) for m in mlp if isinstance(m, torch.nn.Linear)]
+    assert len(weights) == len(linear) and all(w.dtype == torch.float16 and not w.requires_grad for w in weights)
     sigma, rgb = field.radiance(x, encoded, mlps=mlps)
     sigma_ref, rgb_ref = field.radiance(x, encoded)
     torch.testing.assert_close(rgb.float(), rgb_ref, rtol=0, atol=5e-3)
