@@ -5,6 +5,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import torch
+
 __all__ = ["DENSITY_RANGE", "LINEAR_SOLVERS", "STIFFNESS_RANGE", "ClothConfig"]
 
 DENSITY_RANGE = (200.0, 640.0)
@@ -67,6 +69,11 @@ class ClothConfig:
             anew. Larger margins mean fewer searches and more candidates to filter. ``None``: 5 mm on CUDA, 2 mm on
             the CPU, where filtering many candidates costs more than searching again: those were the fastest
             margins of skirt7271 walking on each device (``docs/benchmarks.md``).
+        psd_precision: the dtype in which the PSD filter decomposes the float64 element Hessians: ``"float32"``,
+            ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi takes about two thirds of
+            the time in float32 and the walk of skirt7271 took as many Newton iterations (489) and 43.4 against
+            46.1 ms a frame on an H100; float64 on the CPU. The filtered matrices stay PSD in either
+            (:func:`kernels.element_terms.project_psd`).
     """
 
     density: float = 472.641509
@@ -90,6 +97,7 @@ class ClothConfig:
     cg_max_iterations: int = 5000
     ccd_eta: float = 0.1
     candidate_margin: float | None = None
+    psd_precision: str = "auto"
 
     def __post_init__(self):
         lo, hi = DENSITY_RANGE
@@ -119,6 +127,8 @@ class ClothConfig:
             raise ValueError(f"gravity must have 3 components, got {self.gravity}")
         if self.elastic_projection not in ("auto", "abs", "clamp"):
             raise ValueError(f"elastic_projection ({self.elastic_projection!r}) must be 'auto', 'abs' or 'clamp'")
+        if self.psd_precision not in ("auto", "float32", "float64"):
+            raise ValueError(f"psd_precision ({self.psd_precision!r}) must be 'auto', 'float32' or 'float64'")
         if self.membrane_filter not in ("eigen", "stress"):
             raise ValueError(f"membrane_filter ({self.membrane_filter!r}) must be 'eigen' or 'stress'")
         if self.linear_solver not in LINEAR_SOLVERS:
@@ -131,6 +141,12 @@ class ClothConfig:
             math.isfinite(self.candidate_margin) and self.candidate_margin >= 0.0
         ):
             raise ValueError(f"candidate_margin ({self.candidate_margin}) must be a non-negative distance, m")
+
+    def eigen_dtype(self, device: torch.device) -> torch.dtype:
+        """The dtype the PSD filter decomposes the element Hessians in on ``device`` (``psd_precision``)."""
+        if self.psd_precision == "auto":
+            return torch.float32 if device.type == "cuda" else torch.float64
+        return torch.float32 if self.psd_precision == "float32" else torch.float64
 
     @property
     def young(self) -> float:

@@ -293,7 +293,7 @@ class NewtonLoop:
             capacity = (self.capacity["active_pt"], self.capacity["active_ee"])
             *active, counts = self.potential.active_rows(X, swept, capacity)
         energy, grad, elements = self.potential.evaluate(X, swept, self.ctx, active=active)
-        filtered = filtered_elements(elements)
+        filtered = filtered_elements(elements, self.matrices.eigen_dtype)
         p_kin = torch.where(self.kinematic[:, None], self.target - X, torch.zeros_like(X))
         mass = self.potential.inertia_diagonal(self.free)
         matrix, rhs, missing = self.matrices.scatter(filtered, -grad[self.free], self.dof, p_kin, mass)

@@ -80,11 +80,13 @@ class NewtonMatrices:
     garment's elements only when the free vertices change or when contacts have doubled it.
 
     Each element kind's Hessians are PSD-filtered by one batched eigensolver call
-    (:func:`kernels.element_terms.project_psd`), then scattered by one Warp launch (:mod:`kernels.assembly`).
+    (:func:`kernels.element_terms.project_psd`, its decompositions in ``eigen_dtype``), then scattered by one Warp
+    launch (:mod:`kernels.assembly`).
     """
 
-    def __init__(self, elastic: list[torch.Tensor]):
+    def __init__(self, elastic: list[torch.Tensor], eigen_dtype: torch.dtype | None = None):
         self.elastic = elastic
+        self.eigen_dtype = eigen_dtype  # of the PSD filter's decompositions (filtered_elements)
         self.pattern: assembly.BlockPattern | None = None
         self.version = 0  # counts the patterns set
         self._mass_slots: torch.Tensor | None = None
@@ -117,7 +119,7 @@ class NewtonMatrices:
         PSD-filtered (:func:`filtered_elements`)."""
         if dof is not self.dof:
             self.begin_step(dof, n)
-        return filtered_elements(elements)
+        return filtered_elements(elements, self.eigen_dtype)
 
     def scatter(self, active: list[NewtonElement], rhs: torch.Tensor, dof: torch.Tensor, p_kin, mass):
         """``(NewtonMatrix, rhs [n, 3], missing)``: ``Σ`` scaled element Hessians of ``active`` (from :meth:`prepare`)
@@ -164,8 +166,9 @@ def _keys(elements: list[NewtonElement], dof: torch.Tensor, n: int) -> list[torc
     return [assembly.block_keys(e.index if e.reach is None else e.reach, dof, n) for e in elements]
 
 
-def filtered_elements(elements: list[NewtonElement]) -> list[NewtonElement]:
-    """The non-empty ``elements`` with their Hessians PSD-filtered.
+def filtered_elements(elements: list[NewtonElement], eigen_dtype: torch.dtype | None = None) -> list[NewtonElement]:
+    """The non-empty ``elements`` with their Hessians PSD-filtered (``eigen_dtype``: the decompositions' dtype, as
+    :func:`kernels.element_terms.project_psd` takes it).
 
     One batched eigensolver call per element kind: one call over bending and contact Hessians together (contact
     Hessians many orders of magnitude stiffer than the bending's) slowed cuSOLVER's batched ``syevd`` down
@@ -175,7 +178,7 @@ def filtered_elements(elements: list[NewtonElement]) -> list[NewtonElement]:
         if not element.index.shape[0]:
             continue
         if element.projection != "none":
-            hess = element_terms.project_psd(element.hess, absolute=element.projection == "abs")
+            hess = element_terms.project_psd(element.hess, element.projection == "abs", eigen_dtype)
             element = element._replace(hess=hess, projection="none")
         out.append(element)
     return out

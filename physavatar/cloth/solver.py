@@ -132,7 +132,7 @@ class SolverCloth:
         self.contact = ClothContact(self.faces, body_faces, self.vertex_count, self.body_vertex_count, config)
         self.linear = LinearSolver(config, device, self.vertex_count)  # raises where cuDSS is asked for and cannot load
         self.linear_solver = self.linear.kind
-        self.matrices = NewtonMatrices([self.faces, self.potential.hinges])
+        self.matrices = NewtonMatrices([self.faces, self.potential.hinges], config.eigen_dtype(device))
         self.loop = NewtonLoop(self.potential, self.contact, self.matrices, self.linear, config.newton_tolerance)
         margin = config.candidate_margin
         self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)

@@ -228,6 +228,14 @@ def test_projected_hessians_are_psd_and_unchanged_when_psd(device):
         assert torch.linalg.eigvalsh(hess).min() > -1e-10
     spd = torch.eye(9, dtype=F64) * 2 + 0.1
     torch.testing.assert_close(element_terms.project_psd(spd[None])[0], spd)
+    # decomposed in float32: float64 out, PSD still, within float32 precision of the float64 filter
+    for hess, projected in ((m.hess, mp.hess), (b.hess, bp.hess)):
+        for absolute in (False, True):
+            single = _host(element_terms.project_psd(_dev(hess), absolute, eigen_dtype=torch.float32))
+            exact = projected if not absolute else _host(element_terms.project_psd(_dev(hess), True))
+            assert single.dtype == F64 and torch.linalg.eigvalsh(single).min() > -1e-10
+            scale = hess.abs().amax((1, 2), keepdim=True)
+            assert ((single - exact).abs() / scale).max() < 1e-5
     torch.testing.assert_close(mp.energy, m.energy)
 
 

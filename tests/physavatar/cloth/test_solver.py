@@ -310,6 +310,7 @@ def test_bad_input_raises_clear_errors(device):
         ("poisson", 0.5, "poisson"),
         ("candidate_margin", -1e-3, "candidate_margin"),
         ("membrane_filter", "flip", "membrane_filter"),
+        ("psd_precision", "float16", "psd_precision"),
     ):
         with pytest.raises(ValueError, match=words):
             ClothConfig(**{field: value})
