@@ -18,7 +18,7 @@ import torch
 from kernels import backend, ccd, ipc_barrier
 from kernels import contact as kernels_contact
 from kernels import friction as kernels_friction
-from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
+from kernels.broad_phase import BoxTree, OverlapQuery, OverlapSearch
 from kernels.raycast import MeshBVH
 from physavatar.cloth.config import ClothConfig
 
@@ -171,6 +171,7 @@ class ClothContact:
         self._body_points = torch.arange(v, v + body_vertex_count, dtype=torch.int32, device=device)[:, None]
         self._body_faces = self.body_faces.to(torch.int32).contiguous()
         self._body_edges = self.body_edges.to(torch.int32).contiguous()
+        self._search = OverlapSearch()  # box_pairs' five requests, each in one walk
 
     def broad_phase(
         self, X: torch.Tensor, p: torch.Tensor, kinematic: torch.Tensor, x_rest: torch.Tensor
@@ -229,7 +230,7 @@ class ClothContact:
         points = BoxTree(lo, hi, self._points)
         triangles = BoxTree(lo, hi, self.faces)
         edges = BoxTree(lo, hi, self._edges)
-        pt_vb, pt_bv, ee_b, pt_self, ee_self = find_overlaps(
+        pt_vb, pt_bv, ee_b, pt_self, ee_self = self._search(
             [  # garment vertices against body triangles, body vertices against garment triangles, body edges
                 OverlapQuery(points, self._body_faces, dhat, kinematic, tree_first=True),
                 OverlapQuery(triangles, self._body_points, dhat, kinematic),

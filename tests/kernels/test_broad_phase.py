@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from kernels.broad_phase import BoxTree, OverlapQuery, find_overlaps
+from kernels.broad_phase import BoxTree, OverlapQuery, OverlapSearch, find_overlaps
 
 F64 = torch.float64
 
@@ -86,6 +86,41 @@ def test_find_overlaps_gives_each_request_its_own_pairs(device):
         assert torch.equal(pairs, tree.overlaps(query, grow, excluded, same=same, tree_first=tree_first))
     assert min(got[0].shape[0], got[1].shape[0], got[3].shape[0]) > 100
     assert find_overlaps([]) == []
+
+
+def test_overlap_search_in_one_walk_gives_find_overlaps_pairs(device):
+    """OverlapSearch gives find_overlaps' rows in its order: from its slots where every query's pairs fit, by the
+    filling walk where some query found more, after which that request's slots have grown to hold them."""
+    lo, hi, triangles, edges, points, excluded = _boxes(device)
+    triangle_tree, edge_tree = BoxTree(lo, hi, triangles), BoxTree(lo, hi, edges)
+    requests = [
+        OverlapQuery(triangle_tree, points, 1e-3, excluded),
+        OverlapQuery(triangle_tree, points[:0], 1e-3, excluded),
+        OverlapQuery(edge_tree, edges, 1e-3, excluded, same=True),
+        OverlapQuery(edge_tree, edges, 0.0, excluded, tree_first=True),
+    ]
+    want = find_overlaps(requests)
+    most = []
+    for request in requests:
+        pairs = find_overlaps([request])[0]
+        column = request.tree.prims.shape[1] if request.tree_first else 0
+        first = pairs[:, column : column + request.query.shape[1]].cpu()
+        counts = torch.unique_consecutive(first, dim=0, return_counts=True)[1] if len(pairs) else torch.zeros(1)
+        most.append(int(counts.max()))
+    assert max(most) > 2, "the case must overflow two slots"
+    search = OverlapSearch(slots=2, max_slots=512)
+    for attempt in range(2):
+        got = search(requests)
+        assert len(got) == len(requests)
+        for a, b in zip(got, want, strict=True):
+            assert torch.equal(a, b)
+        if attempt == 0:
+            assert search.overflows == sum(m > 2 for m in most)
+            assert all(s >= m for s, m in zip(search.request_slots, most, strict=True))
+    assert search.overflows == sum(m > 2 for m in most), "the grown slots hold every pair the second time"
+    assert search([]) == []
+    with pytest.raises(ValueError, match="slots"):
+        OverlapSearch(slots=0)
 
 
 def test_overlaps_are_deterministic_and_exact_at_touching_boxes(device):
