@@ -357,7 +357,8 @@ def rollout(
     solver = SolverCloth(problem.rest_vertices, problem.faces, params.config(problem.config), problem.body_faces)
     driver = problem.driver().to(dev)
     x0 = problem.reference[0].to(dev)
-    state = ClothState(x0.clone(), torch.zeros_like(x0))
+    # double-buffered: each step writes the other state, and the sensitivities read both
+    state, new = ClothState(x0.clone(), torch.zeros_like(x0)), ClothState(x0.clone(), torch.zeros_like(x0))
     frames = [x0.cpu()]
     if sensitivities:
         s_x = torch.zeros(*x0.shape, len(parameters), dtype=F64, device=dev)
@@ -366,15 +367,14 @@ def rollout(
     dt = driver.dt
     for t in range(problem.frames - 1):
         control = driver.control(t)
-        new = ClothState(state.x.clone(), state.v.clone())
         solver.step(state, new, control, dt)
         if not bool(torch.isfinite(new.x).all()):
             raise ValueError(f"step {t + 1} produced NaN or inf positions with {params}; check the inputs")
         if sensitivities:
             s_x, s_v = solver.sensitivity_step(state, new, control, dt, s_x, s_v, parameters)
             sens.append(s_x.cpu())
-        state = new
-        frames.append(state.x.cpu())
+        state, new = new, state
+        frames.append(state.x.to("cpu", copy=True))  # a copy: the state's tensors are written again
     return Rollout(torch.stack(frames), torch.stack(sens) if sensitivities else None)
 
 

@@ -138,7 +138,7 @@ def simulate(
     dt = driver.dt
 
     solver = SolverCloth(garment.vertices, garment.faces, config, body.faces)
-    state = solver.initial_state()
+    state, spare = solver.initial_state(), solver.initial_state()  # double-buffered: each step writes the other
     out = [state.x.clone()]
     on_device = driver.to(backend.torch_device())
     stats, wall = [], []
@@ -161,8 +161,9 @@ def simulate(
         for t in range(frames):
             control = on_device.control(t)
             start = time.perf_counter()
-            step = solver.step(state, state, control, dt)
+            step = solver.step(state, spare, control, dt)
             wall.append(time.perf_counter() - start)
+            state, spare = spare, state
             if not bool(torch.isfinite(state.x).all()):
                 raise ValueError(f"step {t + 1} produced NaN or inf positions; lower Δt or check the inputs")
             stats.append(step)

@@ -88,6 +88,49 @@ class StepStats:
     line_search_stalled: bool = False
 
 
+@dataclass
+class _StepBuffers:
+    """What a step of :class:`SolverCloth` fills in place rather than allocating (``N = V + B``): the positions at
+    its start ``X`` and a copy of them ``x_start`` ``[N, 3]``, the ``target`` and ``predicted`` end positions
+    ``[N, 3]``, the zero sweep ``[N, 3]``, the rest positions of garment and body ``x_rest_all [N, 3]`` (m), the
+    inertial target ``x_hat [V, 3]`` (m) and ``Δt² g [3]``, the ``kinematic`` mask and its complement ``moving``
+    ``[N]``, the free DOF map ``dof [N]`` int32, the ``V − D`` free vertices ``free_rows [V − D, 1]`` (``free`` is
+    their column) and ``counting`` ``0 … V − 1`` int32."""
+
+    X: torch.Tensor
+    x_start: torch.Tensor
+    target: torch.Tensor
+    predicted: torch.Tensor
+    zero: torch.Tensor
+    x_rest_all: torch.Tensor
+    x_hat: torch.Tensor
+    gravity_step: torch.Tensor
+    kinematic: torch.Tensor
+    moving: torch.Tensor
+    dof: torch.Tensor
+    free_rows: torch.Tensor
+    free: torch.Tensor
+    counting: torch.Tensor
+
+    @staticmethod
+    def make(vertex_count: int, body_vertex_count: int, boundary_count: int, device: torch.device) -> _StepBuffers:
+        """The buffers of a garment of ``V`` vertices, a body of ``B`` and ``D`` Dirichlet vertices."""
+        v, n = vertex_count, vertex_count + body_vertex_count
+        points = [torch.zeros(n, 3, dtype=F64, device=device) for _ in range(6)]
+        free_rows = torch.zeros(v - boundary_count, 1, dtype=torch.int64, device=device)
+        return _StepBuffers(
+            *points,
+            x_hat=torch.zeros(v, 3, dtype=F64, device=device),
+            gravity_step=torch.zeros(3, dtype=F64, device=device),
+            kinematic=torch.zeros(n, dtype=torch.bool, device=device),
+            moving=torch.zeros(n, dtype=torch.bool, device=device),
+            dof=torch.zeros(n, dtype=torch.int32, device=device),
+            free_rows=free_rows,
+            free=free_rows[:, 0],
+            counting=torch.arange(v, dtype=torch.int32, device=device),
+        )
+
+
 class SolverCloth:
     """Codim-IPC garment simulator (PhysAvatar §3.2, Appendix A.3): one implicit step per frame.
 
@@ -137,6 +180,7 @@ class SolverCloth:
         margin = config.candidate_margin
         self.candidate_margin = margin if margin is not None else (5e-3 if device.type == "cuda" else 2e-3)
         self._checked_inside = False
+        self._step_buffers: _StepBuffers | None = None  # made at the first step (:meth:`_buffers`)
 
     def initial_state(self) -> ClothState:
         """The rest shape at rest."""
@@ -149,7 +193,9 @@ class SolverCloth:
 
         Args:
             state_in: garment state at the start of the step.
-            state_out: receives the state at the end of the step (may be ``state_in``).
+            state_out: receives the state at the end of the step, written into its own tensors (float64 ``[V, 3]``
+                on the backend device, as :meth:`initial_state` makes them); may be ``state_in``. Callers keep two
+                states and swap them after each step.
             control: body collider motion and Dirichlet targets of this step.
             dt: step size, s (paper: 0.04).
 
@@ -157,49 +203,71 @@ class SolverCloth:
             :class:`StepStats`.
 
         Raises:
-            ValueError: malformed inputs, a static solve without boundary vertices, or a garment that starts
-                inside or touching the body collider.
+            ValueError: malformed inputs (``state_out`` included), a static solve without boundary vertices, or a
+                garment that starts inside or touching the body collider.
         """
         with backend.one_torch_thread_on_cpu():
             return self._step(state_in, state_out, control, dt)
 
-    def _context(self, state_in: ClothState, control: ClothControl, dt: float):
-        """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet)."""
-        x_start, b0, b1, fixed, target_fixed = self._check_step(state_in, control, dt)
-        v, nb = self.vertex_count, self.body_vertex_count
-        device = x_start.device
-        X = torch.cat([x_start, b0]).contiguous()
-        kinematic = torch.zeros(v + nb, dtype=torch.bool, device=device)
+    def _context(self, state_in: ClothState, control: ClothControl, dt: float, state_out: ClothState | None = None):
+        """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet).
+
+        Everything it returns lives in the solver's step buffers (:meth:`_buffers`), filled in place: valid until the
+        next call, which overwrites them. All of ``state_in`` is read here, so a step may write its result into the
+        same state; ``state_out``, when given, is checked as the step's output (:meth:`_check_step`)."""
+        x_start, b0, b1, fixed, target_fixed = self._check_step(state_in, control, dt, state_out)
+        v = self.vertex_count
+        buf = self._buffers(fixed.numel())
+        X = torch.cat([x_start, b0], out=buf.X)
+        kinematic = buf.kinematic
+        kinematic.fill_(False)
         kinematic[fixed] = True
         kinematic[v:] = True
-        target = X.clone()
+        target = buf.target.copy_(X)
         target[fixed] = target_fixed
         target[v:] = b1
-        dof = torch.full((v + nb,), -1, dtype=torch.int32, device=device)
-        free = torch.nonzero_static(~kinematic, size=v - fixed.numel()).squeeze(1)  # the boundary holds no repeats
-        dof[free] = torch.arange(free.numel(), dtype=torch.int32, device=device)
-        x_hat = x_start + dt * state_in.v.to(device, F64) + dt * dt * self.potential.gravity
+        dof = buf.dof.fill_(-1)
+        # the boundary holds no repeats: exactly V - D free vertices
+        torch.nonzero_static(torch.logical_not(kinematic, out=buf.moving), size=buf.free.numel(), out=buf.free_rows)
+        free = buf.free
+        dof[free] = buf.counting[: free.numel()]
+        # x̂ = x + Δt v + Δt² g, in the order of the sums as written
+        x_hat = torch.mul(state_in.v.to(x_start.device, F64), dt, out=buf.x_hat)
+        torch.add(x_start, x_hat, out=x_hat)
+        x_hat.add_(torch.mul(self.potential.gravity, dt * dt, out=buf.gravity_step))
         kappa = self.potential.kappa(dt)
-        x_rest_all = torch.cat([self.x_rest, b0])
-        ctx = StepContext(dt, kappa, X.clone(), x_hat, x_rest_all, kinematic, dof, free, None)
+        x_rest_all = torch.cat([self.x_rest, b0], out=buf.x_rest_all)
+        # the start is a buffer of its own, not X: X goes back to the caller, and the step reads the start again
+        # after its Newton loop (the velocity), so nothing done with X may reach it
+        ctx = StepContext(dt, kappa, buf.x_start.copy_(X), x_hat, x_rest_all, kinematic, dof, free, None)
         return X, target, ctx
+
+    def _buffers(self, boundary_count: int) -> _StepBuffers:
+        """The step's buffers for ``boundary_count`` Dirichlet vertices, made at the first step and anew only when
+        that count changes (the free vertices' list is ``V − D`` long)."""
+        buf = self._step_buffers
+        if buf is None or buf.free.numel() != self.vertex_count - boundary_count:
+            buf = _StepBuffers.make(self.vertex_count, self.body_vertex_count, boundary_count, self.x_rest.device)
+            self._step_buffers = buf
+        return buf
 
     def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
         cfg = self.config
-        X, target, ctx = self._context(state_in, control, dt)
+        X, target, ctx = self._context(state_in, control, dt, state_out)
         v, kinematic = self.vertex_count, ctx.kinematic
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
+        buf = self._step_buffers
         timer = PhaseTimer(X.device)
 
         timer.start()
         # the candidates reach from each vertex's start along its predicted path (inertial target, or kinematic
         # target) and a margin beyond: usually every Newton sweep of the step stays inside
-        predicted = target.clone()
+        predicted = buf.predicted.copy_(target)
         if not cfg.static:
-            predicted[:v] = torch.where(kinematic[:v, None], target[:v], ctx.x_hat)
+            torch.where(kinematic[:v, None], target[:v], ctx.x_hat, out=predicted[:v])
         cover = self.contact.cover(X, predicted, ctx.kinematic, ctx.x_rest, self.candidate_margin)
         searches = 1
-        pairs = self.contact.swept(X, torch.zeros_like(X), cover)
+        pairs = self.contact.swept(X, buf.zero, cover)
         timer.stop("broad_phase")
         self._check_separated(X, pairs, b0)
         if cfg.friction > 0.0 and not cfg.static:
@@ -256,11 +324,15 @@ class SolverCloth:
                 break
             loop.accept(snap=alpha == 1.0 and not read.reached)  # once reached, the kinematic vertices stay there
 
-        X = loop.positions().clone()
-        state_out.x = X[:v].clone()
-        state_out.v = torch.zeros_like(state_out.x) if cfg.static else (state_out.x - x_start) / dt
+        # the end state goes into state_out's own tensors; x_start is the solver's copy, so state_out may be state_in
+        X = loop.positions()
+        state_out.x.copy_(X[:v])
+        if cfg.static:
+            state_out.v.zero_()
+        else:
+            torch.sub(state_out.x, x_start, out=state_out.v).div_(dt)
         # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
-        near = self.contact.sweep_masks(X, torch.zeros_like(X), cover)
+        near = self.contact.sweep_masks(X, buf.zero, cover)
         d_body, d_self, contacts = self.contact.min_distances(X, cover.pairs, near)
         return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
 
@@ -338,6 +410,9 @@ class SolverCloth:
             )
         count = len(parameters)
         X_start, X, ctx = self._context(state_in, control, dt)  # X: the targets, body at the end of the step
+        # NewtonMatrices takes a dof tensor other than the last step's for the start of a new step (its pending blocks
+        # join the pattern): the step's dof buffer would be that same tensor, so the solve here gets its own copy
+        ctx = ctx._replace(dof=ctx.dof.clone())
         device = X.device
         for name, t in (("s_x", s_x), ("s_v", s_v)):
             if tuple(t.shape) != (v, 3, count):
@@ -390,7 +465,7 @@ class SolverCloth:
 
     # -- pieces of a step -------------------------------------------------------------------------------------
 
-    def _check_step(self, state_in: ClothState, control: ClothControl, dt: float):
+    def _check_step(self, state_in: ClothState, control: ClothControl, dt: float, state_out: ClothState | None = None):
         device = backend.torch_device()
         v, nb = self.vertex_count, self.body_vertex_count
         if not (math.isfinite(dt) and dt > 0.0):
@@ -398,6 +473,8 @@ class SolverCloth:
         for name, t in (("state_in.x", state_in.x), ("state_in.v", state_in.v)):
             if tuple(t.shape) != (v, 3):
                 raise ValueError(f"{name} must have shape [{v}, 3], got {list(t.shape)}")
+        if state_out is not None:
+            self._check_state_out(state_out, device)
         for name, t in (("control.body_start", control.body_start), ("control.body_end", control.body_end)):
             if tuple(t.shape) != (nb, 3):
                 raise ValueError(f"{name} must have shape [{nb}, 3] (the body mesh's vertices), got {list(t.shape)}")
@@ -426,6 +503,24 @@ class SolverCloth:
         b0 = control.body_start.to(device, F64).contiguous()
         b1 = control.body_end.to(device, F64).contiguous()
         return x, b0, b1, fixed, control.boundary_target.to(device, F64)
+
+    def _check_state_out(self, state_out: ClothState, device: torch.device) -> None:
+        """Refuse an output state the step cannot write its result into in place."""
+        v = self.vertex_count
+        tensors = (("state_out.x", state_out.x), ("state_out.v", state_out.v))
+        for name, t in tensors:
+            if not (isinstance(t, torch.Tensor) and tuple(t.shape) == (v, 3) and t.dtype == F64 and t.device == device):
+                got = f"{t.dtype} {list(t.shape)} on {t.device}" if isinstance(t, torch.Tensor) else type(t).__name__
+                raise ValueError(
+                    f"{name} must be a float64 [{v}, 3] tensor on {device} (the step writes into it), got {got}; "
+                    "make the states with solver.initial_state()"
+                )
+        x, vel = state_out.x, state_out.v
+        if x.untyped_storage().data_ptr() == vel.untyped_storage().data_ptr():
+            raise ValueError(
+                "state_out.x and state_out.v share memory, so one would overwrite the other; "
+                "make the states with solver.initial_state()"
+            )
 
     def _check_separated(self, X: torch.Tensor, pairs: ContactPairs, b0: torch.Tensor) -> None:
         """Refuse a start state that touches the body or lies inside it (the barrier needs a positive gap)."""

@@ -299,6 +299,45 @@ def test_cpu_steps_are_bitwise_reproducible(device):
     assert torch.equal(results[0][0], results[1][0]) and torch.equal(results[0][1], results[1][1])
 
 
+def test_double_buffered_steps_write_into_their_states_as_in_place_steps_do(device):
+    """Stepping from one state into another, then swapping, gives what stepping a state in place gives (bit for bit
+    on the CPU), and the step writes into the output state's own tensors: their storage never moves. The number of
+    Dirichlet vertices changes on the way, so the solver's step buffers are made anew once."""
+    runs = {}
+    for buffered in (False, True):
+        solver, control, body, _ = _sheet_over_sphere(8)
+        pinned = _pinned(solver.x_rest.cpu(), torch.tensor([0, 7]), body.cpu())
+        made = [solver.initial_state(), solver.initial_state()]
+        storage = [(s.x.data_ptr(), s.v.data_ptr()) for s in made]
+        states = list(made)
+        for t in range(10):
+            step_control = pinned if t < 3 else control
+            if buffered:
+                solver.step(states[0], states[1], step_control, 0.04)
+                states.reverse()
+            else:
+                solver.step(states[0], states[0], step_control, 0.04)
+        assert [(s.x.data_ptr(), s.v.data_ptr()) for s in made] == storage
+        runs[buffered] = states[0].x.cpu(), states[0].v.cpu()
+    (x, v), (x_buffered, v_buffered) = runs[False], runs[True]
+    assert float(x[:, 1].min()) < 0.2  # fell into contact with the sphere's top
+    if device == "cpu":
+        assert torch.equal(x_buffered, x) and torch.equal(v_buffered, v)
+    else:
+        torch.testing.assert_close(x_buffered, x, rtol=0.0, atol=1e-5)
+    state = solver.initial_state()
+    for bad in (
+        ClothState(state.x[:-1].clone(), state.v[:-1].clone()),
+        ClothState(state.x.float(), state.v.clone()),
+        ClothState(state.x.clone(), state.v.cpu() if device != "cpu" else state.v.to(torch.float32)),
+    ):
+        with pytest.raises(ValueError, match=r"state_out\.[xv] must be a float64 .* solver\.initial_state\(\)"):
+            solver.step(state, bad, control, 0.04)
+    shared = torch.zeros(2, *state.x.shape, dtype=F64, device=state.x.device)
+    with pytest.raises(ValueError, match="share memory"):
+        solver.step(state, ClothState(shared[0], shared[1]), control, 0.04)
+
+
 def test_bad_input_raises_clear_errors(device):
     x, faces = grid_sheet(4, 4, 0.1)
     no_body = torch.zeros(0, 3, dtype=torch.int32)
