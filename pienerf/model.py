@@ -248,11 +248,13 @@ class QGMLSModel:
     def device(self) -> torch.device:
         return self.position.device
 
-    def integrator(self, material: Material) -> IPIntegrator:
-        """The IP integrator of :mod:`kernels.ip_integrate` for ``material``."""
+    def integrator(self, material: Material, product_dtype: torch.dtype = torch.float64) -> IPIntegrator:
+        """The IP integrator of :mod:`kernels.ip_integrate` for ``material``, its Hessian's block products formed in
+        ``product_dtype`` (``torch.float64`` or ``torch.float32``; the Hessian is float64 either way)."""
         mu, lam = material.lame
         return IPIntegrator(
-            self.ip_shape.index, self.shape_grad, self.quadrature_weight, self.shape_count, mu, lam, material.kind
+            self.ip_shape.index, self.shape_grad, self.quadrature_weight, self.shape_count, mu, lam, material.kind,
+            product_dtype=product_dtype,
         )
 
     def handle(self, rest_points: torch.Tensor) -> PointHandle:

@@ -13,7 +13,8 @@ step that inverts a Neo-Hookean quadrature point (Ψ = +∞ for det F ≤ 0), so
 External forces act at any point X through f_q = Jᵀ(X) f (Eq. 9); gravity is f_q = M q_g with q_g the
 uniform translation g, exact because Q-GMLS reproduces constants. Pins and drags are zero-rest-length
 springs from material points to targets; colliders (floors, spheres) push particles out with a
-quadratic penalty. Everything runs in float64 on the model's device.
+quadratic penalty. Everything runs in float64 on the model's device (the elastic Hessian's block products in float32
+where :attr:`SolverConfig.hessian_precision` asks, the Hessian still float64).
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from pienerf.materials import Material
 from pienerf.model import PointHandle, QGMLSModel
 
 __all__ = [
+    "HESSIAN_PRECISIONS",
     "ControlQGMLS",
     "PlaneCollider",
     "PointForces",
@@ -41,6 +43,9 @@ __all__ = [
     "StateQGMLS",
     "StepReport",
 ]
+
+HESSIAN_PRECISIONS = {"float64": torch.float64, "float32": torch.float32}
+"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for."""
 
 
 @dataclass(frozen=True)
@@ -74,6 +79,11 @@ class SolverConfig:
             instead; a change of controls, dt or material drops it too. Every direction is a descent direction
             (the factor is of an SPD matrix) and the line search keeps the never-invert guarantee, so a step that
             reuses the factor ends where Newton's would, to the tolerance.
+        hessian_precision: ``"float64"`` or ``"float32"``: the precision of the elastic Hessian's block products
+            (:class:`kernels.ip_integrate.IPIntegrator`'s ``product_dtype``). ``"float32"`` leaves the Hessian
+            float64 with a relative error of 1e-7 or less, the energy and gradient (and so Newton's fixed point)
+            exact, and suits dynamic steps, whose mass term keeps the Newton matrix well away from singular. Static
+            solves (no mass term: the rigid modes sit at round-off) want ``"float64"``, the default.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -88,6 +98,7 @@ class SolverConfig:
     device_loop: bool | None = None
     line_search_batch: int = 3
     factor_reuse: int = 0
+    hessian_precision: str = "float64"
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
@@ -110,6 +121,14 @@ class SolverConfig:
             raise ValueError("factor_reuse needs rayleigh_beta = 0: stiffness damping uses each step's own K(q_n)")
         if self.hessian_updates is not None and self.hessian_updates < 1:
             raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
+        if self.hessian_precision not in HESSIAN_PRECISIONS:
+            raise ValueError(f"hessian_precision must be one of {sorted(HESSIAN_PRECISIONS)}, got "
+                             f"{self.hessian_precision!r}")
+
+    @property
+    def hessian_product_dtype(self) -> torch.dtype:
+        """The torch dtype of ``hessian_precision``."""
+        return HESSIAN_PRECISIONS[self.hessian_precision]
 
 
 @dataclass
@@ -234,7 +253,7 @@ class SolverQGMLS:
     def __init__(self, model: QGMLSModel, material: Material, config: SolverConfig = SolverConfig()):
         self.model = model
         self.config = config
-        self.integrator = model.integrator(material)
+        self.integrator = model.integrator(material, config.hessian_product_dtype)
         self.device_loop_redos = 0  # device-loop steps the host loop redid (:meth:`step`)
         self.factor_refreshes = 0  # steps retaken with their own factor, the kept one no longer serving
         self.set_material(material)
@@ -244,7 +263,7 @@ class SolverQGMLS:
         self.material = material
         model = self.model
         if material.kind != self.integrator.model:
-            self.integrator = model.integrator(material)
+            self.integrator = model.integrator(material, self.config.hessian_product_dtype)
         self.integrator.set_material(*material.lame)
         n = model.shape_count
         self.mass = material.density * model.mass  # [nT, nT] scalar mass (Eq. 11)

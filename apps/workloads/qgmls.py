@@ -3,7 +3,9 @@
 The reference swaps the Warp material-point kernel for its pure torch form (autograd Hessians,
 eigen-projection); the contractions and the dense Cholesky are shared torch code in both. On CUDA the step
 runs its device loop, one CUDA graph per step (:meth:`pienerf.solver.SolverQGMLS.step`); the reference's torch
-material response reads the device from the host, so its step runs the host loop.
+material response reads the device from the host, so its step runs the host loop. The assembly is measured as that
+loop runs it too: replayed as a CUDA graph on CUDA, called on the CPU; ``qgmls_assemble_f32`` forms the Hessian's block
+products in float32 (:class:`kernels.ip_integrate.IPIntegrator`'s ``product_dtype``) beside it.
 """
 
 from __future__ import annotations
@@ -49,22 +51,36 @@ def _params(model: QGMLSModel) -> dict:
     return {**model.summary(), "material": "neo_hookean", "dtype": "float64"}
 
 
-@workload("qgmls_assemble", "Q-GMLS IP integration: energy, gradient, PSD Hessian (n = 16 / 78 / 200 kernels)")
-def bench_qgmls_assemble(device: str, size: str) -> Case:
+def _assemble_case(device: str, size: str, product_dtype: torch.dtype) -> Case:
+    """One evaluation (energy, gradient, PSD Hessian) as the solver's device loop runs it: on CUDA a replay of its
+    CUDA graph (:class:`kernels.backend.CapturedCall`, q in a buffer that stays put), on the CPU a plain call. The
+    reference is the eager evaluation with the torch material response, in float64."""
     model = _box_model(size)
     material = Material()
-    kernel = model.integrator(material)
+    kernel = model.integrator(material, product_dtype)
     reference = model.integrator(material)
     reference.response = material_response_batched
     q = _deformed(model)
+    captured = device == "cuda"
+    run = backend.CapturedCall(lambda: kernel.evaluate(q), capture=captured)
     return Case(
-        run=lambda: kernel.evaluate(q),
+        run=run,
         reference=lambda: reference.evaluate(q),
-        params=_params(model),
+        params={**_params(model), "captured": captured, "product_dtype": str(product_dtype).removeprefix("torch.")},
         work=1.0,
         unit="assemblies/s",
         reference_name="torch autograd material response",
     )
+
+
+@workload("qgmls_assemble", "Q-GMLS IP integration: energy, gradient, PSD Hessian (n = 16 / 78 / 200 kernels)")
+def bench_qgmls_assemble(device: str, size: str) -> Case:
+    return _assemble_case(device, size, torch.float64)
+
+
+@workload("qgmls_assemble_f32", "as qgmls_assemble, the Hessian's block products in float32 (Hessian float64)")
+def bench_qgmls_assemble_f32(device: str, size: str) -> Case:
+    return _assemble_case(device, size, torch.float32)
 
 
 def _step_case(size: str, config: SolverConfig, name: str) -> Case:

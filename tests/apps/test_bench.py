@@ -117,6 +117,19 @@ def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
     assert (step["time_device_loop_s"] if step["device_loop"] else step["time_assembly_s"]) > 0
 
 
+def test_qgmls_assemble_workloads_say_how_they_ran(device):
+    """The assembly runs as the solver's device loop runs it, captured on CUDA only, with float64 and float32 block
+    products side by side, each beside the same reference."""
+    records = bench.main(
+        ["--workload", "qgmls_assemble,qgmls_assemble_f32", "--device", device, "--size", "smoke", "--reps", "2"]
+    )
+    assert [(r["params"]["captured"], r["params"]["product_dtype"]) for r in records] == [
+        (device == "cuda", "float64"), (device == "cuda", "float32")
+    ]
+    for r in records:
+        assert r["median_s"] > 0 and r["reference_median_s"] > 0 and r["unit"] == "assemblies/s"
+
+
 def test_nerf_train_records_a_curve_and_writes_error_images(device, tmp_path):
     """The smoke size's short curve: checkpoints in time and step order with finite scores, and one error image per
     scored view plus a contact sheet, named in the record."""

@@ -93,3 +93,45 @@ def test_block_sums_by_the_warp_kernel_match_torch(device):
     by_torch = integrator._sum_blocks(blocks, warp_kernel=False)
     torch.testing.assert_close(by_warp, by_torch, rtol=1e-13, atol=1e-13)
     assert by_warp.abs().sum() > 0
+
+
+@pytest.mark.parametrize("assembly", ASSEMBLIES)
+@pytest.mark.parametrize("project", [True, False], ids=["projected", "unprojected"])
+def test_float32_products_give_the_float64_hessian_to_single_precision(device, assembly, project):
+    """Block products in float32: the Hessian comes back float64, within 1e-6 (relative, Frobenius) of the float64
+    products' and symmetric to the same degree; energy and gradient are the float64 ones, bit for bit."""
+    index, shape_grad, weight, q, n = _problem(seed=7, K=9, S=6, n=11)
+    dev = backend.torch_device()
+    args = (index.to(dev), shape_grad.to(dev), weight.to(dev), n, 2.0, 5.0, MaterialModel.NEO_HOOKEAN)
+    double = IPIntegrator(*args, assembly=assembly).evaluate(q.to(dev), project=project)
+    single = IPIntegrator(*args, assembly=assembly, product_dtype=torch.float32).evaluate(q.to(dev), project=project)
+    assert single.hessian.dtype == torch.float64
+    scale = double.hessian.norm()
+    assert scale > 0
+    assert (single.hessian - double.hessian).norm() < 1e-6 * scale
+    assert (single.hessian - single.hessian.T).norm() < 1e-6 * scale
+    assert torch.equal(single.energy, double.energy)
+    assert torch.equal(single.gradient, double.gradient)
+
+
+def test_unknown_product_dtype_is_refused(device):
+    index, shape_grad, weight, _, n = _problem()
+    with pytest.raises(ValueError, match="product_dtype .* use torch.float64 or torch.float32"):
+        IPIntegrator(index, shape_grad, weight, n, 1.0, 1.0, MaterialModel.ARAP, product_dtype=torch.float16)
+
+
+def test_float32_blocks_are_summed_in_float64(device):
+    """float32 per-IP blocks are summed in float64 by the Warp kernel and by torch alike: the sum of many blocks
+    keeps the contributions a float32 sum would round away."""
+    index, shape_grad, weight, _, n = _problem(seed=7, K=9, S=6, n=11)
+    dev = backend.torch_device()
+    integrator = IPIntegrator(index.to(dev), shape_grad.to(dev), weight.to(dev), n, 2.0, 5.0,
+                              MaterialModel.NEO_HOOKEAN, assembly="per_ip", product_dtype=torch.float32)
+    K, S = index.shape
+    blocks = torch.randn(K * S * S, 9, generator=torch.Generator().manual_seed(2), dtype=torch.float32).to(dev)
+    blocks[::2] *= 1e8  # large and small contributions meet in the same global blocks
+    exact = integrator._sum_blocks(blocks.to(torch.float64), warp_kernel=False)
+    for warp_kernel in (True, False):
+        summed = integrator._sum_blocks(blocks, warp_kernel=warp_kernel)
+        assert summed.dtype == torch.float64
+        torch.testing.assert_close(summed, exact, rtol=1e-13, atol=1e-13)

@@ -160,6 +160,31 @@ def test_bad_solver_config_and_model_inputs(device):
         solver.step(state, state, ControlQGMLS(), 0.0)
 
 
+def test_float32_hessian_products_take_the_float64_steps(device):
+    """hessian_precision="float32" changes only the Newton matrix: ten momentum-conserving steps end where the
+    float64 ones do, to the Newton tolerance (1e-8), and conserve momentum as tightly; an unknown precision is
+    refused."""
+    model = box_model(backend.torch_device())
+    generator = torch.Generator().manual_seed(0)
+    qd = 0.3 * torch.randn(model.shape_count, 3, generator=generator, dtype=torch.float64)
+    ends = {}
+    for precision in ("float64", "float32"):
+        config = SolverConfig(gravity=(0, 0, 0), newton_iterations=6, hessian_precision=precision)
+        solver = SolverQGMLS(model, Material(young_modulus=5e4), config)
+        assert solver.integrator.product_dtype == config.hessian_product_dtype
+        state = solver.rest_state()
+        state.qd.copy_(qd)
+        start = momentum(solver, state.qd)
+        for _ in range(10):
+            report = solver.step(state, state, ControlQGMLS(), 5e-3)
+            assert math.isfinite(report.energy) and report.min_det > 0
+        torch.testing.assert_close(momentum(solver, state.qd), start, rtol=1e-8, atol=1e-10)
+        ends[precision] = state.q
+    torch.testing.assert_close(ends["float32"], ends["float64"], rtol=1e-6, atol=SolverConfig().newton_tolerance)
+    with pytest.raises(ValueError, match="hessian_precision must be one of"):
+        SolverConfig(hessian_precision="float16")
+
+
 def test_modified_newton_reaches_the_same_step(device):
     """Reusing the first Cholesky factor (hessian_updates=1) converges to Newton's solution."""
     model = box_model(backend.torch_device())
