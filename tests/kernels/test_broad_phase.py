@@ -160,3 +160,17 @@ def test_empty_sets_and_bad_input(device):
         tree.overlaps(points, -1.0, excluded)
     with pytest.raises(ValueError, match="same=True"):
         tree.overlaps(points, 1e-3, excluded, same=True)
+
+
+def test_refitted_tree_finds_the_pairs_of_a_fresh_one(device):
+    """A tree refitted to moved boxes finds every pair a tree built on them finds (its order may differ)."""
+    lo, hi, triangles, edges, points, excluded = _boxes(device, seed=3)
+    moved_lo, moved_hi, *_ = _boxes(device, seed=4)
+    for prims, query in ((triangles, points), (edges, edges)):
+        tree = BoxTree(lo, hi, prims)
+        tree.refit(moved_lo, moved_hi)
+        fresh = BoxTree(moved_lo, moved_hi, prims)
+        got = tree.overlaps(query, 1e-3, excluded)
+        assert len(got) > 100 and _rows(got) == _rows(fresh.overlaps(query, 1e-3, excluded))
+    with pytest.raises(ValueError, match="refit needs"):
+        tree.refit(moved_lo[:10].contiguous(), moved_hi[:10].contiguous())
