@@ -99,7 +99,7 @@ def test_block_sums_by_the_warp_kernel_match_torch(device):
 @pytest.mark.parametrize("project", [True, False], ids=["projected", "unprojected"])
 def test_float32_products_give_the_float64_hessian_to_single_precision(device, assembly, project):
     """Block products in float32: the Hessian comes back float64, within 1e-6 (relative, Frobenius) of the float64
-    products' and symmetric to the same degree; energy and gradient are the float64 ones, bit for bit."""
+    products' and symmetric to the same degree; energy and gradient are the float64 ones (bit for bit on the CPU)."""
     index, shape_grad, weight, q, n = _problem(seed=7, K=9, S=6, n=11)
     dev = backend.torch_device()
     args = (index.to(dev), shape_grad.to(dev), weight.to(dev), n, 2.0, 5.0, MaterialModel.NEO_HOOKEAN)
@@ -111,7 +111,10 @@ def test_float32_products_give_the_float64_hessian_to_single_precision(device, a
     assert (single.hessian - double.hessian).norm() < 1e-6 * scale
     assert (single.hessian - single.hessian.T).norm() < 1e-6 * scale
     assert torch.equal(single.energy, double.energy)
-    assert torch.equal(single.gradient, double.gradient)
+    if dev.type == "cpu":
+        assert torch.equal(single.gradient, double.gradient)
+    else:  # the per-IP gradient's index_add_ sums in the order its CUDA atomics land, from call to call
+        torch.testing.assert_close(single.gradient, double.gradient, rtol=1e-12, atol=1e-12)
 
 
 def test_unknown_product_dtype_is_refused(device):
