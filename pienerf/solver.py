@@ -44,9 +44,8 @@ __all__ = [
     "StepReport",
 ]
 
-HESSIAN_PRECISIONS = {"float64": torch.float64, "float32": torch.float32, "auto": None}
-"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for (``"auto"``:
-float32 on CUDA, float64 on the CPU)."""
+HESSIAN_PRECISIONS = {"float64": torch.float64, "float32": torch.float32}
+"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for."""
 
 
 @dataclass(frozen=True)
@@ -85,8 +84,10 @@ class SolverConfig:
             the Hessian float64 with a relative error of 1e-7 or less, the energy and gradient (and so Newton's fixed
             point) exact, and suits dynamic steps, whose mass term keeps the Newton matrix well away from singular.
             :meth:`SolverQGMLS.solve_static` (no mass term: the rigid modes sit at round-off) always assembles in
-            float64. ``"auto"``: float32 on CUDA, where the products are most of an assembly (an H100 assembled the
-            78-kernel box in 0.90 ms against 1.30 ms, as CUDA graphs), float64 on the CPU.
+            float64. On an H100 the 78-kernel box assembled in 0.86 ms with float32 products against 1.35 ms (CUDA
+            graphs). float64 stays the default: under a force no body can bear the float32 products' round-off
+            outgrew the mass term and the host loop's Cholesky failed where float64 reports the inversion, and the
+            Hessian's rigid modes (1e-13 of its largest eigenvalue) drown in float32 round-off.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -101,7 +102,7 @@ class SolverConfig:
     device_loop: bool | None = None
     line_search_batch: int = 3
     factor_reuse: int = 0
-    hessian_precision: str = "auto"
+    hessian_precision: str = "float64"
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
@@ -128,12 +129,10 @@ class SolverConfig:
             raise ValueError(f"hessian_precision must be one of {sorted(HESSIAN_PRECISIONS)}, got "
                              f"{self.hessian_precision!r}")
 
-    def hessian_product_dtype(self, device: torch.device) -> torch.dtype:
-        """The torch dtype of ``hessian_precision`` on ``device``."""
-        dtype = HESSIAN_PRECISIONS[self.hessian_precision]
-        if dtype is None:
-            return torch.float32 if device.type == "cuda" else torch.float64
-        return dtype
+    @property
+    def hessian_product_dtype(self) -> torch.dtype:
+        """The torch dtype of ``hessian_precision``."""
+        return HESSIAN_PRECISIONS[self.hessian_precision]
 
 
 @dataclass
@@ -258,22 +257,31 @@ class SolverQGMLS:
     def __init__(self, model: QGMLSModel, material: Material, config: SolverConfig = SolverConfig()):
         self.model = model
         self.config = config
-        self.integrator = model.integrator(material, config.hessian_product_dtype(model.device))
-        self._static_integrator: IPIntegrator | None = None  # float64, for solve_static when steps use float32
+        self._integrators: dict[torch.dtype, IPIntegrator] = {}  # by block-product dtype (:meth:`_integrator`)
+        self.integrator = model.integrator(material, config.hessian_product_dtype)
         self.device_loop_redos = 0  # device-loop steps the host loop redid (:meth:`step`)
         self.factor_refreshes = 0  # steps retaken with their own factor, the kept one no longer serving
         self.set_material(material)
+
+    def _integrator(self, product_dtype: torch.dtype) -> IPIntegrator:
+        """An integrator of the material whose Hessian's block products are formed in ``product_dtype``:
+        :attr:`integrator` where it is that one, else a companion made once per material."""
+        integrator = self._integrators.get(product_dtype)
+        if integrator is None:
+            integrator = self._integrators[product_dtype] = self.model.integrator(self.material, product_dtype)
+            integrator.set_material(*self.material.lame)
+        return integrator
 
     def set_material(self, material: Material) -> None:
         """Change the material (Young's modulus, Poisson ratio, density, model) between steps."""
         self.material = material
         model = self.model
         if material.kind != self.integrator.model:
-            self.integrator = model.integrator(material, self.config.hessian_product_dtype(model.device))
-            self._static_integrator = None
-        self.integrator.set_material(*material.lame)
-        if self._static_integrator is not None:
-            self._static_integrator.set_material(*material.lame)
+            self.integrator = model.integrator(material, self.integrator.product_dtype)
+            self._integrators = {}
+        self._integrators[self.integrator.product_dtype] = self.integrator
+        for integrator in self._integrators.values():
+            integrator.set_material(*material.lame)
         n = model.shape_count
         self.mass = material.density * model.mass  # [nT, nT] scalar mass (Eq. 11)
         self.mass_flat = torch.kron(self.mass, torch.eye(3, dtype=torch.float64, device=model.device))
@@ -665,12 +673,7 @@ class SolverQGMLS:
         q = q0.clone() if q0 is not None else torch.zeros(self._n, 3, dtype=torch.float64, device=self.model.device)
         self._check_step_inputs(StateQGMLS(q, torch.zeros_like(q)), control, 1.0)
         f_ext = self._external_force(control)
-        integrator = self.integrator
-        if integrator.product_dtype != torch.float64:  # no mass term here: the Hessian's products in float64
-            if self._static_integrator is None:
-                self._static_integrator = self.model.integrator(self.material, torch.float64)
-                self._static_integrator.set_material(*self.material.lame)
-            integrator = self._static_integrator
+        integrator = self._integrator(torch.float64)  # no mass term here: the Hessian's products in float64
 
         def energy_at(x):
             elastic = integrator.evaluate(x, gradient=False, hessian=False, project=False)

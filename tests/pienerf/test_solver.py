@@ -171,7 +171,7 @@ def test_float32_hessian_products_take_the_float64_steps(device):
     for precision in ("float64", "float32"):
         config = SolverConfig(gravity=(0, 0, 0), newton_iterations=6, hessian_precision=precision)
         solver = SolverQGMLS(model, Material(young_modulus=5e4), config)
-        assert solver.integrator.product_dtype == config.hessian_product_dtype(model.device)
+        assert solver.integrator.product_dtype == config.hessian_product_dtype
         state = solver.rest_state()
         state.qd.copy_(qd)
         start = momentum(solver, state.qd)
@@ -181,8 +181,6 @@ def test_float32_hessian_products_take_the_float64_steps(device):
         torch.testing.assert_close(momentum(solver, state.qd), start, rtol=1e-8, atol=1e-10)
         ends[precision] = state.q
     torch.testing.assert_close(ends["float32"], ends["float64"], rtol=1e-6, atol=SolverConfig().newton_tolerance)
-    auto = SolverConfig().hessian_product_dtype
-    assert auto(torch.device("cpu")) == torch.float64 and auto(torch.device("cuda")) == torch.float32
     with pytest.raises(ValueError, match="hessian_precision must be one of"):
         SolverConfig(hessian_precision="float16")
 
@@ -197,9 +195,11 @@ def test_static_solve_assembles_in_float64_when_steps_use_float32(device):
     for precision in ("float64", "float32"):
         solver = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(hessian_precision=precision))
         ends[precision], _ = solver.solve_static(control, iterations=20)
-    assert solver.integrator.product_dtype == torch.float32 and solver._static_integrator is not None
-    assert solver._static_integrator.product_dtype == torch.float64
-    torch.testing.assert_close(ends["float32"], ends["float64"], rtol=0, atol=0)
+    assert solver.integrator.product_dtype == torch.float32 and torch.float64 in solver._integrators
+    if ends["float64"].is_cuda:  # the same arithmetic, but CUDA's atomics sum the gradient in no fixed order
+        torch.testing.assert_close(ends["float32"], ends["float64"], rtol=1e-9, atol=1e-12)
+    else:
+        assert torch.equal(ends["float32"], ends["float64"])
 
 
 def test_modified_newton_reaches_the_same_step(device):
