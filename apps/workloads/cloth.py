@@ -35,7 +35,8 @@ measured after every frame (untimed, :attr:`~apps.workloads.Case.observe`) by th
 kernels (:func:`physavatar.cloth.contact.garment_distances`) on either simulator's positions:
 ``min_distance_body`` and ``min_distance_self`` (m, the smallest over the frames run; garment pairs that share a
 vertex left out; ``None`` where nothing came within 1 cm) and ``vertices_inside_body`` (the most over the frames, by
-the body's winding number).
+the body's winding number). ``cloth_step``'s also carries ``steps``, ``steps_converged`` (steps that met the Newton
+tolerance with every kinematic vertex on its target) and ``newton_iterations_total`` over every step run.
 
 ``cloth_step`` at paper size takes the skirt7271 (3757 vertices) through the walk; its figures on GPU and CPU, and
 what each change to the solver did to them, are on the measurements page ``docs/benchmarks.md``, as are the peer's.
@@ -240,7 +241,9 @@ def bench_cloth_step(device: str, size: str) -> Case:
         extra["frame"] = t + 1
         extra["newton_iterations"] = stats.newton_iterations
         extra["contacts"] = stats.contacts
-        extra["min_distance_body_m"] = stats.min_distance_body
+        extra["steps"] = extra.get("steps", 0) + 1
+        extra["steps_converged"] = extra.get("steps_converged", 0) + int(stats.converged)
+        extra["newton_iterations_total"] = extra.get("newton_iterations_total", 0) + stats.newton_iterations
         extra["phase_share"] = {k: round(v / total, 4) for k, v in totals.items()}
         return states[0].x
 

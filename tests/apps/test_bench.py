@@ -45,6 +45,7 @@ def test_cloth_workloads_run_with_their_reference(device, capsys):
         assert skirt["realtime_factor"] == pytest.approx(0.04 / skirt["median_s"])
         assert 0 < skirt["min_distance_body"] < 0.01 and 0 < skirt["min_distance_self"] < 0.01
         assert skirt["vertices_inside_body"] == 0
+        assert skirt["steps_converged"] == skirt["steps"] >= 3 and skirt["newton_iterations_total"] >= skirt["steps"]
     else:
         skipped = [line for line in capsys.readouterr().err.splitlines() if "cloth_step skipped:" in line]
         assert len(skipped) == 1 and "skirt1252.obj" in skipped[0]
