@@ -3,6 +3,7 @@ shape functions, quadrature and mass (PIE-NeRF §4.2–4.4). Built once; the sol
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -155,17 +156,24 @@ class QGMLSModel:
         self.config = config
         self.position = position
         self.volume = volume
-        user = torch.tensor(config.user_kernels, dtype=torch.float64, device=device).reshape(-1, 3)
-        self.kernels: KernelSet = place_kernels(
-            position, volume, n, user_points=user if len(user) else None,
+        # Kernels and IPs are placed on the CPU whatever the device, so that a body is discretised alike on every
+        # device and from run to run: on a lattice many particles tie for their nearest centre, and the atomic sums of
+        # Lloyd's steps on CUDA broke those ties differently from run to run (a cantilever's tip error at 8 kernels
+        # moved between 5 and 8 % on an H100). The placement is a one-off of the model's set-up.
+        user = torch.tensor(config.user_kernels, dtype=torch.float64).reshape(-1, 3)
+        on_cpu = (position.cpu(), volume.cpu())
+        kernels = place_kernels(
+            *on_cpu, n, user_points=user if len(user) else None,
             lloyd_iterations=config.kernel_lloyd_iterations,
             neighbours=config.support_neighbours, support_scale=config.support_scale,
         )
         ip_count = min(4 * n if config.ip_count is None else config.ip_count, position.shape[0])
-        self.ips: IntegratorPoints = place_integrator_points(
-            position, volume, self.kernels.centres, max(ip_count, n),
+        ips = place_integrator_points(
+            *on_cpu, kernels.centres, max(ip_count, n),
             lloyd_iterations=config.ip_lloyd_iterations, neighbours=config.cuboid_neighbours,
         )
+        self.kernels: KernelSet = _to_device(kernels, position.device)
+        self.ips: IntegratorPoints = _to_device(ips, position.device)
         self.quadrature_offset, self.quadrature_weight = cuboid_quadrature(self.ips, config.quadrature_points_per_axis)
         # Supports must cover every point the shape functions are evaluated at: the particles and the
         # cuboid quadrature points, which on thin or slender bodies can stick out past the particles.
@@ -300,3 +308,12 @@ class QGMLSModel:
             "volume_m3": float(self.volume.sum()),
             "bounding_box_m": [round(float(v), 4) for v in (self.position.amax(0) - self.position.amin(0))],
         }
+
+
+def _to_device(placed, device: torch.device):
+    """A copy of a placement (:class:`KernelSet`, :class:`IntegratorPoints`) with its tensors on ``device``."""
+    return dataclasses.replace(
+        placed,
+        **{f.name: getattr(placed, f.name).to(device) for f in dataclasses.fields(placed)
+           if isinstance(getattr(placed, f.name), torch.Tensor)},
+    )

@@ -15,6 +15,7 @@ from pienerf.integrator_points import (
     place_integrator_points,
     place_kernels,
 )
+from pienerf.model import DiscretizationConfig, QGMLSModel
 from pienerf.qgmls import QGMLSBasis, voronoi_partition
 
 F64 = torch.float64
@@ -197,3 +198,20 @@ def test_mass_matrix_rejects_bad_arguments(body):
         mass_matrix(basis, ips, 1.0, quadrature="gauss")
     with pytest.raises(ValueError, match="density must be > 0"):
         mass_matrix(basis, ips, 0.0)
+
+
+def test_model_discretises_a_lattice_alike_on_every_device(device):
+    """A body on an exact lattice (where many particles tie for their nearest centre) gets the same kernels and IPs
+    on the backend's device as on the CPU, and from one build to the next: the placement runs on the CPU."""
+    axes = [torch.arange(0.0125, extent, 0.025, dtype=F64) for extent in (1.0, 0.1, 0.1)]
+    position = torch.cartesian_prod(*axes)
+    volume = torch.full((position.shape[0],), 0.025**3, dtype=F64)
+    config = DiscretizationConfig(kernel_count=8)
+    devices = ("cpu", backend.torch_device(), backend.torch_device())
+    models = [QGMLSModel(position, volume, config, device=d) for d in devices]
+    for model in models[1:]:
+        assert model.kernels.centres.device == model.position.device
+        assert torch.equal(model.kernels.centres.cpu(), models[0].kernels.centres)
+        assert torch.equal(model.kernels.cell.cpu(), models[0].kernels.cell)
+        assert torch.equal(model.ips.position.cpu(), models[0].ips.position)
+        assert torch.equal(model.ips.volume.cpu(), models[0].ips.volume)
