@@ -124,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as error:  # a bad scene or value, a missing file, a port in use
         print(f"error: {error.strerror if isinstance(error, OSError) and error.strerror else error}", file=sys.stderr)
         return 2
-    app.viewer.frame_budget = args.frame_budget_ms / 1e3
+    app.viewer.nerf_schedules.frame_budget = args.frame_budget_ms / 1e3
     if args.smoke:
         app.run(steps=3)
         app.close()

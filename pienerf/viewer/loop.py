@@ -31,6 +31,7 @@ __all__ = [
     "RENDER_MODES",
     "DemoApp",
     "NerfJob",
+    "NerfSchedules",
     "Viewer",
     "control_value",
     "load_nerf",
@@ -70,6 +71,44 @@ def si_text(value: float, unit: str) -> str:
         if abs(value) >= factor:
             return f"{value / factor:.3g} {prefix}{unit}"
     return f"{value:.3g} {unit}"
+
+
+class NerfSchedules:
+    """The NeRF view's refinement schedules (:class:`pienerf.preview.RefinementSchedule`), one per client (a browser
+    tab), all under one frame budget; thread-safe, as a viewer's server threads drop clients while the loop renders.
+
+    Args:
+        frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
+            render's resolution adapts to hold it.
+    """
+
+    def __init__(self, frame_budget: float = 1.0 / 30.0):
+        self._frame_budget = RefinementSchedule.check_frame_budget(frame_budget)
+        self._schedules: dict[object, RefinementSchedule] = {}
+        self._lock = threading.Lock()
+
+    @property
+    def frame_budget(self) -> float:
+        """Seconds a frame of the NeRF mode may take while things move (a new value starts every schedule again)."""
+        return self._frame_budget
+
+    @frame_budget.setter
+    def frame_budget(self, seconds: float) -> None:
+        self._frame_budget = RefinementSchedule.check_frame_budget(seconds)
+        self.drop()
+
+    def of(self, client) -> RefinementSchedule:
+        """``client``'s schedule, started at its first frame."""
+        with self._lock:
+            return self._schedules.setdefault(client, RefinementSchedule(frame_budget=self._frame_budget))
+
+    def drop(self, client=None) -> None:
+        """Forget ``client``'s schedule (a closed tab), or every schedule (``None``: a new render mode or budget)."""
+        with self._lock:
+            if client is None:
+                self._schedules.clear()
+            else:
+                self._schedules.pop(client, None)
 
 
 def render_nerf_in_budget(app: DemoApp, schedule: RefinementSchedule, cameras, level: int) -> Frame:

@@ -42,8 +42,14 @@ from PIL import Image
 
 from pienerf.cameras import pinhole_camera
 from pienerf.data import Cameras
-from pienerf.preview import RefinementSchedule
-from pienerf.viewer.loop import CONTROL_RANGES, RENDER_MODES, control_value, render_nerf_in_budget, si_text
+from pienerf.viewer.loop import (
+    CONTROL_RANGES,
+    RENDER_MODES,
+    NerfSchedules,
+    control_value,
+    render_nerf_in_budget,
+    si_text,
+)
 from pienerf.viewer.meshcat_server import MeshcatServer
 
 __all__ = ["Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
@@ -115,7 +121,8 @@ class MeshcatViewer:
         nerf_height: height in pixels of the NeRF images rendered for each tab (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
         frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
-            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`).
+            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`); later through
+            :attr:`nerf_schedules` (:class:`pienerf.viewer.loop.NerfSchedules`).
     """
 
     def __init__(
@@ -126,12 +133,11 @@ class MeshcatViewer:
         background=(1.0, 1.0, 1.0),
         frame_budget: float = 1.0 / 30.0,
     ):
-        self._frame_budget = RefinementSchedule.check_frame_budget(frame_budget)  # before the server starts
+        self.nerf_schedules = NerfSchedules(frame_budget)  # checks the budget before the server starts
         self.app = None
         self.nerf_height = int(nerf_height)
         self.background = torch.tensor(background, dtype=torch.float32)
         self._cameras: dict[int, tuple] = {}  # client -> (matrix, fov, aspect) as sent
-        self._schedules: dict[int, RefinementSchedule] = {}
         self._dragger: int | None = None  # the tab whose press started the drag
         self._lock = threading.Lock()
         self._particle_count = -1
@@ -141,18 +147,6 @@ class MeshcatViewer:
         self.message = ""  # the last one shown
         self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
         self.port, self.url = self.server.port, self.server.url
-
-    @property
-    def frame_budget(self) -> float:
-        """Seconds a frame of the NeRF mode may take while things move (the schedules start again from a new
-        value)."""
-        return self._frame_budget
-
-    @frame_budget.setter
-    def frame_budget(self, seconds: float) -> None:
-        self._frame_budget = RefinementSchedule.check_frame_budget(seconds)
-        with self._lock:
-            self._schedules.clear()
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -225,8 +219,7 @@ class MeshcatViewer:
         send(SetProperty("visible", mode != "nerf", Path(("Grid",))).lower(), key="grid visible")
         send(SetProperty("visible", mode != "nerf", Path(("Background",))).lower(), key="background visible")
         self.server.send_json({"type": "mode", "mode": mode}, key="mode")
-        with self._lock:
-            self._schedules.clear()
+        self.nerf_schedules.drop()
 
     # -- page events (the server's thread: validate, then queue) --------------------------------
 
@@ -300,7 +293,7 @@ class MeshcatViewer:
     def _client_closed(self, client: int) -> None:
         with self._lock:
             self._cameras.pop(client, None)
-            self._schedules.pop(client, None)
+        self.nerf_schedules.drop(client)
         if self._dragger == client and self.app is not None:  # a tab closing mid-drag lets go
             self._dragger = None
             self.app.submit("release (tab closed)", self.app.simulation.release)
@@ -415,8 +408,7 @@ class MeshcatViewer:
         with self._lock:
             views = dict(self._cameras)
         for client, view in views.items():
-            with self._lock:
-                schedule = self._schedules.setdefault(client, RefinementSchedule(frame_budget=self.frame_budget))
+            schedule = self.nerf_schedules.of(client)
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue

@@ -32,11 +32,11 @@ import numpy as np
 import torch
 
 from pienerf.cameras import viser_cameras
-from pienerf.preview import RefinementSchedule
 from pienerf.viewer.loop import (
     CONTROL_RANGES,
     RENDER_MODES,
     DemoApp,
+    NerfSchedules,
     control_value,
     render_nerf_in_budget,
     si_text,
@@ -100,7 +100,8 @@ class ViserViewer:
         nerf_height: height in pixels of the NeRF images rendered for each client (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
         frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
-            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`).
+            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`); later through
+            :attr:`nerf_schedules` (:class:`pienerf.viewer.loop.NerfSchedules`).
     """
 
     def __init__(
@@ -112,7 +113,7 @@ class ViserViewer:
         frame_budget: float = 1.0 / 30.0,
     ):
         check_address(host, port)
-        self._frame_budget = RefinementSchedule.check_frame_budget(frame_budget)  # before the server starts
+        self.nerf_schedules = NerfSchedules(frame_budget)  # checks the budget before the server starts
         with contextlib.redirect_stdout(io.StringIO()):  # viser prints its address; the app prints the page's
             self.server, self.request_check = checked_viser_server(host, port)
         self.port = self.server.get_port()
@@ -127,20 +128,8 @@ class ViserViewer:
         self._setting = False  # the viewer is setting a GUI value itself
         self.nerf_height = int(nerf_height)
         self.background = torch.tensor(background, dtype=torch.float32)
-        self._schedules: dict[int, RefinementSchedule] = {}
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
-
-    @property
-    def frame_budget(self) -> float:
-        """Seconds a frame of the NeRF mode may take while things move (the schedules start again from a new
-        value)."""
-        return self._frame_budget
-
-    @frame_budget.setter
-    def frame_budget(self, seconds: float) -> None:
-        self._frame_budget = RefinementSchedule.check_frame_budget(seconds)
-        self._schedules.clear()
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -334,7 +323,7 @@ class ViserViewer:
         self.ground.visible = mode != "nerf"  # the NeRF image has its own ground and shadow
         if mode != "nerf":
             self.server.scene.set_background_image(None)
-        self._schedules.clear()
+        self.nerf_schedules.drop()
 
     def _update_nerf(self, app: DemoApp) -> None:
         """Render the warped NeRF from every client's camera: as coarse as the frame budget asks while things move,
@@ -351,7 +340,7 @@ class ViserViewer:
                 )
             except AssertionError:  # the client has not sent its camera yet
                 continue
-            schedule = self._schedules.setdefault(client_id, RefinementSchedule(frame_budget=self.frame_budget))
+            schedule = self.nerf_schedules.of(client_id)
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue

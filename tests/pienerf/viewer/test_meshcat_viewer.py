@@ -184,9 +184,9 @@ def test_the_nerf_view_holds_the_frame_budget_by_its_resolution(device, tmp_path
             viewer.on_message(CLIENT, camera)
 
         with pytest.raises(ValueError, match="frame_budget must be a positive number of seconds"):
-            viewer.frame_budget = 0.0
+            viewer.nerf_schedules.frame_budget = 0.0
         # A budget every render holds: full resolution from the first measured render on.
-        viewer.frame_budget = 600.0
+        viewer.nerf_schedules.frame_budget = 600.0
         viewer.nerf_renders.clear()
         for frame in range(4):
             look(0.01 * (frame + 1))  # the camera moves every frame
@@ -194,19 +194,19 @@ def test_the_nerf_view_holds_the_frame_budget_by_its_resolution(device, tmp_path
         assert viewer.nerf_renders[:2] == [4, 4] and set(viewer.nerf_renders[2:]) == {1}, viewer.nerf_renders
         # A budget no render can hold: the finest level not much slower than the coarsest, as the schedule's fit of
         # the measured renders predicts (on this CPU the smoke NeRF's renders cost about the same at every size).
-        viewer.frame_budget = 1e-9
+        viewer.nerf_schedules.frame_budget = 1e-9
         viewer.nerf_renders.clear()
         for frame in range(6):
             look(0.5 + 0.01 * (frame + 1))
             app.tick()
         assert viewer.nerf_renders[:3] == [4, 4, 8], viewer.nerf_renders
-        schedule = viewer._schedules[CLIENT]
+        schedule = viewer.nerf_schedules.of(CLIENT)
         floor = 1.15 * schedule.predicted_seconds(8)
         expected = next(level for level in range(1, 9) if schedule.predicted_seconds(level) <= floor)
         look(0.6)
         app.tick()  # the next moving frame renders at the level the renders measured so far predict
         assert viewer.nerf_renders[-1] == expected, (viewer.nerf_renders, expected)
-        viewer.frame_budget = 1e-9  # a new budget starts the schedules again
+        viewer.nerf_schedules.frame_budget = 1e-9  # a new budget starts the schedules again
         viewer.nerf_renders.clear()
         for _ in range(3):  # the camera stays
             app.tick()
