@@ -339,7 +339,7 @@ class OverlapSearch:
             raise ValueError(f"need 1 <= slots <= max_slots, got {slots} and {max_slots}")
         self.slots, self.max_slots = slots, max_slots
         self.request_slots: list[int] = []  # per request position, learnt from the searches so far
-        self.overflows = 0  # requests that needed the filling walk
+        self.overflows = 0  # requests in which some query primitive walked again (more pairs than its slots)
 
     def __call__(self, requests: list[OverlapQuery]) -> list[torch.Tensor]:
         """The pairs of each request, as :func:`find_overlaps` gives them."""
