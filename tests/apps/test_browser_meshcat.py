@@ -229,8 +229,11 @@ def test_meshcat_page_drags_a_leaf_of_the_default_plant(device):
     try:
         with sync_playwright() as playwright:
             browser, page = _open_page(playwright, app, WIDTH, HEIGHT)
-            found = page.evaluate(_FIND_LEAF_PIXEL, [float(centre[0]), float(centre[2])])
-            assert found is not None, "no pixel of the view shows the plant above its pot"
+            # the page may not have drawn the plant yet when it opens: look until it has (the loop running meanwhile)
+            leaf = lambda: page.evaluate(_FIND_LEAF_PIXEL, [float(centre[0]), float(centre[2])])  # noqa: E731
+            drawn = _poll(page, app, lambda: leaf() is not None, 5.0)
+            assert drawn, "no pixel of the view shows the plant above its pot"
+            found = leaf()
             x, y, axis_x = found
             outward = 1.0 if x > axis_x else -1.0
             before = _screen(page)
