@@ -19,6 +19,7 @@ where :attr:`SolverConfig.hessian_precision` asks, the Hessian still float64).
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections import OrderedDict
@@ -44,8 +45,9 @@ __all__ = [
     "StepReport",
 ]
 
-HESSIAN_PRECISIONS = {"float64": torch.float64, "float32": torch.float32}
-"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for."""
+HESSIAN_PRECISIONS = {"auto": None, "float64": torch.float64, "float32": torch.float32}
+"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for (``None``: chosen
+by the device, :meth:`SolverConfig.hessian_product_dtype`)."""
 
 
 @dataclass(frozen=True)
@@ -79,15 +81,16 @@ class SolverConfig:
             instead; a change of controls, dt or material drops it too. Every direction is a descent direction
             (the factor is of an SPD matrix) and the line search keeps the never-invert guarantee, so a step that
             reuses the factor ends where Newton's would, to the tolerance.
-        hessian_precision: ``"float64"``, ``"float32"`` or ``"auto"``: the precision of the elastic Hessian's block
-            products in steps (:class:`kernels.ip_integrate.IPIntegrator`'s ``product_dtype``). ``"float32"`` leaves
-            the Hessian float64 with a relative error of 1e-7 or less, the energy and gradient (and so Newton's fixed
-            point) exact, and suits dynamic steps, whose mass term keeps the Newton matrix well away from singular.
-            :meth:`SolverQGMLS.solve_static` (no mass term: the rigid modes sit at round-off) always assembles in
-            float64. On an H100 the 78-kernel box assembled in 0.86 ms with float32 products against 1.35 ms (CUDA
-            graphs). float64 stays the default: under a force no body can bear the float32 products' round-off
-            outgrew the mass term and the host loop's Cholesky failed where float64 reports the inversion, and the
-            Hessian's rigid modes (1e-13 of its largest eigenvalue) drown in float32 round-off.
+        hessian_precision: ``"auto"``, ``"float64"`` or ``"float32"``: the precision of the elastic Hessian's block
+            products in steps (:class:`kernels.ip_integrate.IPIntegrator`'s ``product_dtype``); ``"auto"`` is float32
+            on CUDA and float64 on the CPU (:meth:`hessian_product_dtype`). ``"float32"`` leaves the Hessian float64
+            with a relative error of 1e-7 or less, the energy and gradient (and so Newton's fixed point) exact, and
+            suits dynamic steps, whose mass term keeps the Newton matrix well away from singular. Where it does not
+            (a force no body can bear), a Newton matrix whose factorisation fails is assembled again with float64
+            products before the host loop shifts it, so such a step ends as a float64 one does.
+            :meth:`SolverQGMLS.solve_static` (no mass term: the rigid modes, ~1e-13 of the largest eigenvalue, sit
+            below float32 round-off) always assembles in float64. On an H100 the 78-kernel box assembled in 0.86 ms
+            with float32 products against 1.35 ms (CUDA graphs); on the CPU the float64 products cost little.
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
@@ -102,7 +105,7 @@ class SolverConfig:
     device_loop: bool | None = None
     line_search_batch: int = 3
     factor_reuse: int = 0
-    hessian_precision: str = "float64"
+    hessian_precision: str = "auto"
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
@@ -129,10 +132,12 @@ class SolverConfig:
             raise ValueError(f"hessian_precision must be one of {sorted(HESSIAN_PRECISIONS)}, got "
                              f"{self.hessian_precision!r}")
 
-    @property
-    def hessian_product_dtype(self) -> torch.dtype:
-        """The torch dtype of ``hessian_precision``."""
-        return HESSIAN_PRECISIONS[self.hessian_precision]
+    def hessian_product_dtype(self, device: torch.device | str) -> torch.dtype:
+        """The torch dtype of ``hessian_precision`` for a model on ``device`` (``"auto"``: float32 on CUDA)."""
+        dtype = HESSIAN_PRECISIONS[self.hessian_precision]
+        if dtype is None:
+            dtype = torch.float32 if torch.device(device).type == "cuda" else torch.float64
+        return dtype
 
 
 @dataclass
@@ -257,31 +262,34 @@ class SolverQGMLS:
     def __init__(self, model: QGMLSModel, material: Material, config: SolverConfig = SolverConfig()):
         self.model = model
         self.config = config
-        self._integrators: dict[torch.dtype, IPIntegrator] = {}  # by block-product dtype (:meth:`_integrator`)
-        self.integrator = model.integrator(material, config.hessian_product_dtype)
+        self.integrator: IPIntegrator | None = None
+        self.step_integrator: IPIntegrator | None = None
         self.device_loop_redos = 0  # device-loop steps the host loop redid (:meth:`step`)
         self.factor_refreshes = 0  # steps retaken with their own factor, the kept one no longer serving
         self.set_material(material)
 
     def _integrator(self, product_dtype: torch.dtype) -> IPIntegrator:
-        """An integrator of the material whose Hessian's block products are formed in ``product_dtype``:
-        :attr:`integrator` where it is that one, else a companion made once per material."""
+        """The integrator of the material whose Hessian's block products are formed in ``product_dtype``, made once
+        per material."""
         integrator = self._integrators.get(product_dtype)
         if integrator is None:
             integrator = self._integrators[product_dtype] = self.model.integrator(self.material, product_dtype)
-            integrator.set_material(*self.material.lame)
         return integrator
 
     def set_material(self, material: Material) -> None:
-        """Change the material (Young's modulus, Poisson ratio, density, model) between steps."""
+        """Change the material (Young's modulus, Poisson ratio, density, model) between steps.
+
+        Sets :attr:`integrator`, the material's IP integrator with float64 block products (exact to round-off: what
+        :meth:`solve_static` and checks of the energy use), and :attr:`step_integrator`, the one steps use, whose
+        products are in ``config.hessian_precision`` (the same object where that is float64)."""
         self.material = material
         model = self.model
-        if material.kind != self.integrator.model:
-            self.integrator = model.integrator(material, self.integrator.product_dtype)
-            self._integrators = {}
-        self._integrators[self.integrator.product_dtype] = self.integrator
+        if self.integrator is None or material.kind != self.integrator.model:
+            self._integrators: dict[torch.dtype, IPIntegrator] = {}  # by block-product dtype (:meth:`_integrator`)
         for integrator in self._integrators.values():
             integrator.set_material(*material.lame)
+        self.integrator = self._integrator(torch.float64)
+        self.step_integrator = self._integrator(self.config.hessian_product_dtype(model.device))
         n = model.shape_count
         self.mass = material.density * model.mass  # [nT, nT] scalar mass (Eq. 11)
         self.mass_flat = torch.kron(self.mass, torch.eye(3, dtype=torch.float64, device=model.device))
@@ -473,7 +481,7 @@ class SolverQGMLS:
         for iteration in range(config.newton_iterations):
             clock = time.perf_counter()
             fresh = config.hessian_updates is None or iteration < config.hessian_updates
-            elastic = self.integrator.evaluate(q, hessian=fresh, project=config.project_hessian)
+            elastic = self.step_integrator.evaluate(q, hessian=fresh, project=config.project_hessian)
             if beta and damping_K is None:
                 damping_K = elastic.hessian.clone()  # K(q_n): Newton starts at q_n
             contact_E, contact_g, contact_H = self._contact_terms(control.colliders, q, hessian=fresh)
@@ -486,7 +494,12 @@ class SolverQGMLS:
 
             clock = time.perf_counter()
             if fresh:
-                factor = _spd_factor(H)
+
+                exact = None
+                if self.step_integrator is not self.integrator:  # float64 products, should float32 ones break H
+                    exact = functools.partial(self._float64_newton_matrix, q, (q_hat, q_n, inv_h2, inv_h, f_ext),
+                                              damping_K, (contact_g, spring_g), (spring_H, contact_H))
+                factor = _spd_factor(H, exact)
             step = torch.cholesky_solve(-grad.reshape(-1, 1), factor).view_as(q)
             backend.synchronize()
             report.time_solve += time.perf_counter() - clock
@@ -499,7 +512,7 @@ class SolverQGMLS:
             trials = []  # each rejected trial energy: +inf for an inverted trial, NaN for a broken one
             for _ in range(config.line_search_steps):
                 trial = q + t * step
-                trial_elastic = self.integrator.evaluate(trial, gradient=False, hessian=False, project=False)
+                trial_elastic = self.step_integrator.evaluate(trial, gradient=False, hessian=False, project=False)
                 trial_energy = total_energy(trial, trial_elastic.energy)
                 if torch.isfinite(trial_energy) and trial_energy <= energy + 1e-4 * t * slope:
                     break
@@ -553,6 +566,12 @@ class SolverQGMLS:
                 if part is not None:
                     H += part
         return grad, H
+
+    def _float64_newton_matrix(self, q, step, damping_K, gradients, hessians) -> torch.Tensor:
+        """:meth:`_newton_system`'s matrix at ``q`` with float64 block products; ``step``: (q̂, q_n, 1/h², 1/h, f)."""
+        elastic = self.integrator.evaluate(q, hessian=True, project=self.config.project_hessian)
+        q_hat, q_n, inv_h2, inv_h, f_ext = step
+        return self._newton_system(q, q_hat, q_n, inv_h2, inv_h, f_ext, elastic, damping_K, gradients, hessians)[1]
 
     # -- the device loop ----------------------------------------------------------------------
 
@@ -673,7 +692,7 @@ class SolverQGMLS:
         q = q0.clone() if q0 is not None else torch.zeros(self._n, 3, dtype=torch.float64, device=self.model.device)
         self._check_step_inputs(StateQGMLS(q, torch.zeros_like(q)), control, 1.0)
         f_ext = self._external_force(control)
-        integrator = self._integrator(torch.float64)  # no mass term here: the Hessian's products in float64
+        integrator = self.integrator  # no mass term here: the Hessian's products in float64
 
         def energy_at(x):
             elastic = integrator.evaluate(x, gradient=False, hessian=False, project=False)
@@ -795,7 +814,7 @@ class _DeviceLoop:
         """The Newton loop of the host loop, every decision a tensor: returns q, q̇ and the step's statistics.
         ``reuse``: every iteration solves with the kept factor (no assembly of a Hessian, no factorisation)."""
         solver, config = self.solver, self.solver.config
-        dt, integrator = self.dt, solver.integrator
+        dt, integrator = self.dt, solver.step_integrator
         inv_h2, inv_h = 1.0 / dt**2, 1.0 / dt
         beta = config.rayleigh_beta
         q_n = self.q_n
@@ -905,11 +924,15 @@ def _finite_number(value) -> bool:
         return False
 
 
-def _spd_factor(H: torch.Tensor) -> torch.Tensor:
+def _spd_factor(H: torch.Tensor, exact=None) -> torch.Tensor:
     """Cholesky factor of the Newton matrix. Every term of H is PSD; should round-off (or an
-    unconstrained rigid motion in a static solve) make it singular, a shift of 1e-10 times the
-    mean diagonal is added, small next to the physical stiffnesses."""
+    unconstrained rigid motion in a static solve) make it singular, the matrix ``exact()`` gives (the same one with
+    float64 block products, where H has float32 ones) is tried first, then a shift of 1e-10 times the mean diagonal is
+    added, small next to the physical stiffnesses."""
     L, info = torch.linalg.cholesky_ex(H)
+    if int(info) != 0 and exact is not None:
+        H = exact()
+        L, info = torch.linalg.cholesky_ex(H)
     if int(info) != 0:
         shifted = H + 1e-10 * H.diagonal().mean() * torch.eye(H.shape[0], dtype=H.dtype, device=H.device)
         L = torch.linalg.cholesky(shifted)

@@ -4,8 +4,9 @@ The reference swaps the Warp material-point kernel for its pure torch form (auto
 eigen-projection); the contractions and the dense Cholesky are shared torch code in both. On CUDA the step
 runs its device loop, one CUDA graph per step (:meth:`pienerf.solver.SolverQGMLS.step`); the reference's torch
 material response reads the device from the host, so its step runs the host loop. The assembly is measured as that
-loop runs it too: replayed as a CUDA graph on CUDA, called on the CPU; ``qgmls_assemble_f32`` forms the Hessian's block
-products in float32 (:attr:`pienerf.solver.SolverConfig.hessian_precision`) beside it.
+loop runs it too: replayed as a CUDA graph on CUDA, called on the CPU, with the Hessian's block products in the
+solver's default precision for the device (:attr:`pienerf.solver.SolverConfig.hessian_precision`: float32 on CUDA,
+float64 on the CPU); ``qgmls_assemble_f64`` forms them in float64 beside it.
 """
 
 from __future__ import annotations
@@ -75,12 +76,12 @@ def _assemble_case(device: str, size: str, product_dtype: torch.dtype) -> Case:
 
 @workload("qgmls_assemble", "Q-GMLS IP integration: energy, gradient, PSD Hessian (n = 16 / 78 / 200 kernels)")
 def bench_qgmls_assemble(device: str, size: str) -> Case:
+    return _assemble_case(device, size, SolverConfig().hessian_product_dtype(device))
+
+
+@workload("qgmls_assemble_f64", "as qgmls_assemble, the Hessian's block products in float64 on every device")
+def bench_qgmls_assemble_f64(device: str, size: str) -> Case:
     return _assemble_case(device, size, torch.float64)
-
-
-@workload("qgmls_assemble_f32", "as qgmls_assemble, the Hessian's block products in float32 (Hessian float64)")
-def bench_qgmls_assemble_f32(device: str, size: str) -> Case:
-    return _assemble_case(device, size, torch.float32)
 
 
 def _step_case(size: str, config: SolverConfig, name: str) -> Case:
@@ -88,7 +89,7 @@ def _step_case(size: str, config: SolverConfig, name: str) -> Case:
     solver = SolverQGMLS(model, Material(), config)
     # the reference cannot be captured (its material response reads the device), so it runs the host loop
     reference = SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))
-    reference.integrator.response = material_response_batched
+    reference.step_integrator.response = material_response_batched
     pin, tip = _pin_and_tip(model)
     control = ControlQGMLS(springs=[
         PointTargets(pin, pin.rest.clone(), 1e6),
@@ -141,7 +142,7 @@ def bench_qgmls_step_reuse(device: str, size: str) -> Case:
     lift = torch.tensor([[0.0, 1e-3, 0.0]], dtype=torch.float64, device=model.device)
     solvers = {"run": SolverQGMLS(model, Material(), config),
                "reference": SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))}
-    solvers["reference"].integrator.response = material_response_batched
+    solvers["reference"].step_integrator.response = material_response_batched
     runs = {name: {"state": solver.rest_state(), "target": tip.rest.clone(), "reports": []}
             for name, solver in solvers.items()}
 

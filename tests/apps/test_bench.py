@@ -119,13 +119,14 @@ def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
 
 
 def test_qgmls_assemble_workloads_say_how_they_ran(device):
-    """The assembly runs as the solver's device loop runs it, captured on CUDA only, with float64 and float32 block
-    products side by side, each beside the same reference."""
+    """The assembly runs as the solver's device loop runs it, captured on CUDA only, with the solver's default block
+    products (float32 on CUDA, float64 on the CPU) beside float64 ones, each beside the same reference."""
     records = bench.main(
-        ["--workload", "qgmls_assemble,qgmls_assemble_f32", "--device", device, "--size", "smoke", "--reps", "2"]
+        ["--workload", "qgmls_assemble,qgmls_assemble_f64", "--device", device, "--size", "smoke", "--reps", "2"]
     )
+    default = "float32" if device == "cuda" else "float64"
     assert [(r["params"]["captured"], r["params"]["product_dtype"]) for r in records] == [
-        (device == "cuda", "float64"), (device == "cuda", "float32")
+        (device == "cuda", default), (device == "cuda", "float64")
     ]
     for r in records:
         assert r["median_s"] > 0 and r["reference_median_s"] > 0 and r["unit"] == "assemblies/s"

@@ -171,7 +171,8 @@ def test_float32_hessian_products_take_the_float64_steps(device):
     for precision in ("float64", "float32"):
         config = SolverConfig(gravity=(0, 0, 0), newton_iterations=6, hessian_precision=precision)
         solver = SolverQGMLS(model, Material(young_modulus=5e4), config)
-        assert solver.integrator.product_dtype == config.hessian_product_dtype
+        assert solver.step_integrator.product_dtype == config.hessian_product_dtype(model.device)
+        assert solver.integrator.product_dtype == torch.float64  # the exact one, for static solves and checks
         state = solver.rest_state()
         state.qd.copy_(qd)
         start = momentum(solver, state.qd)
@@ -185,6 +186,31 @@ def test_float32_hessian_products_take_the_float64_steps(device):
         SolverConfig(hessian_precision="float16")
 
 
+def test_float32_products_fall_back_to_float64_where_the_newton_matrix_breaks(device):
+    """A near-massless body over a long step: its Newton matrix is its stiffness, whose rigid modes float32 products'
+    round-off makes indefinite, so the factorisation fails; the step assembles that matrix again with float64 products
+    and ends where the float64 solver's step does."""
+    model = box_model(backend.torch_device())
+    generator = torch.Generator().manual_seed(0)
+    qd = (0.3 * torch.randn(model.shape_count, 3, generator=generator, dtype=torch.float64)).to(model.device)
+    ends = {}
+    for precision in ("float64", "float32"):
+        config = SolverConfig(gravity=(0, 0, 0), hessian_precision=precision, device_loop=False)
+        solver = SolverQGMLS(model, Material(young_modulus=5e4, density=1e-3), config)
+        state = solver.rest_state()
+        state.qd.copy_(qd)
+        report = solver.step(state, state, ControlQGMLS(), 1.0)
+        assert math.isfinite(report.energy) and report.min_det > 0
+        ends[precision] = state.q
+    rest = torch.zeros_like(qd)  # the first Newton matrix (at q_n = 0; dt = 1 s), with the step's float32 products:
+    newton_matrix = solver.step_integrator.evaluate(rest).hessian + solver.mass_flat
+    assert torch.linalg.cholesky_ex(newton_matrix).info != 0  # not positive definite: the fallback was needed
+    if ends["float64"].is_cuda:  # CUDA's atomics sum the gradient in no fixed order
+        torch.testing.assert_close(ends["float32"], ends["float64"], rtol=1e-9, atol=1e-12)
+    else:
+        assert torch.equal(ends["float32"], ends["float64"])
+
+
 def test_static_solve_assembles_in_float64_when_steps_use_float32(device):
     """solve_static has no mass term to keep its Newton matrix away from singular: it assembles with float64 block
     products whatever the steps use, so its equilibrium is the float64 solver's."""
@@ -195,7 +221,7 @@ def test_static_solve_assembles_in_float64_when_steps_use_float32(device):
     for precision in ("float64", "float32"):
         solver = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(hessian_precision=precision))
         ends[precision], _ = solver.solve_static(control, iterations=20)
-    assert solver.integrator.product_dtype == torch.float32 and torch.float64 in solver._integrators
+    assert solver.step_integrator.product_dtype == torch.float32 and solver.integrator.product_dtype == torch.float64
     if ends["float64"].is_cuda:  # the same arithmetic, but CUDA's atomics sum the gradient in no fixed order
         torch.testing.assert_close(ends["float32"], ends["float64"], rtol=1e-9, atol=1e-12)
     else:
@@ -257,7 +283,9 @@ def _assert_same_step(host_report, device_report, host_state, device_state):
 @pytest.mark.parametrize("config", [
     {"newton_iterations": 3, "newton_tolerance": 0.0, "rayleigh_alpha": 1.0},
     {"newton_iterations": 5, "newton_tolerance": 1e-7, "rayleigh_beta": 0.01},  # converges early: masked iterations
-    {"newton_iterations": 4, "newton_tolerance": 1e-9, "hessian_updates": 1},
+    # modified Newton ends where its one factor leads, so float32 products summed in another order by the captured
+    # loop's products would show in q at 1e-7: the loops' equivalence is checked with float64 products there
+    {"newton_iterations": 4, "newton_tolerance": 1e-9, "hessian_updates": 1, "hessian_precision": "float64"},
 ])
 def test_device_loop_takes_the_host_loops_step(device, config):
     """Springs that move, a point force, a floor the body is pressed into and a sphere it falls on: the loop with no
