@@ -367,6 +367,7 @@ class DeformedRenderer:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
         self._half_copies, self._half_versions = None, None  # float16 MLPs and the field's versions they copy
+        self._encoded = None  # (directions, their _version, what the encoding depends on, encoded): _encode
         self.framework = backend.check_framework(framework)
         self._rest_occupancy = grid.occupied.to(device=device, dtype=torch.uint8).contiguous()
         self._rest_aabb = grid.aabb.detach().float().cpu()
@@ -394,6 +395,35 @@ class DeformedRenderer:
         if self._half_versions != versions:
             self._half_copies, self._half_versions = self.field.half_mlps(), versions
         return self._half_copies
+
+    def _encode(self, directions: torch.Tensor, reuse: bool) -> torch.Tensor:
+        """The field's encoding ``[R, C]`` of the rays' unit directions ``[R, 3]``
+        (:meth:`pienerf.nerf.NGPField.encode_directions`; float16 under :attr:`half_precision`).
+
+        With ``reuse`` the last camera rays' encoding is kept and handed back while :meth:`render` is given the very
+        same directions tensor, unchanged since (same ``_version``), for the same field, field config and precision:
+        a still camera (a viewer's, a benchmark's) then skips the encoding's ~40 small elementwise operations and
+        its cast over every ray each frame. The tensor itself is held, so its memory cannot pass to another tensor
+        that would then be taken for it. Inference-mode tensors keep no ``_version``, so theirs is never reused.
+        """
+        reuse = reuse and not directions.is_inference()
+        depends_on = (self.field, self.field.config, self.half_precision)
+        cached = self._encoded
+        if (
+            reuse
+            and cached is not None
+            and cached[0] is directions
+            and cached[1] == directions._version
+            and cached[2] == depends_on  # the field by identity, its frozen config by value
+        ):
+            return cached[3]
+        with self._precision():  # once per ray, not per sample (and gathered in float16 under half precision)
+            encoded = self.field.encode_directions(directions)
+            if self.half_precision:
+                encoded = encoded.half()
+        if reuse:
+            self._encoded = (directions, directions._version, depends_on, encoded)
+        return encoded
 
     def _precision(self):
         """The context the field's queries run in: float16 autocast with :attr:`half_precision`."""
@@ -457,7 +487,9 @@ class DeformedRenderer:
             q: ``[nT, 3]`` generalized coordinates (Eq. 9); ignored with ``mode="rest"``.
             cameras: the view ``view`` of these cameras is rendered, at ``resolution × resolution`` pixels
                 over its image (default: the cameras' own size); or
-            rays: ``(origins [R, 3], unit directions [R, 3])``, metres, instead of cameras.
+            rays: ``(origins [R, 3], unit directions [R, 3])``, metres, instead of cameras. Passing the very same
+                float32 directions tensor (on the backend device) frame after frame, unchanged, reuses its encoding
+                (:meth:`_encode`).
             mode: ``"quadratic"`` (Eq. 20), ``"linear"`` (first-order warp) or ``"rest"`` (the undeformed NeRF,
                 :func:`pienerf.nerf.render_rays`).
             background: ``[3]`` colour behind everything.
@@ -506,9 +538,10 @@ class DeformedRenderer:
             result = {k: (v if k == "shadow_map" else v.reshape(*image_shape, *v.shape[1:])) for k, v in result.items()}
         return result
 
-    def _trace(self, origins, directions, far, frame: DeformedFrame, mode: str):
+    def _trace(self, origins, directions, far, frame: DeformedFrame, mode: str, camera: bool = True):
         """Premultiplied colour ``[R, 3]``, opacity ``[R]`` and ``Σ w t`` ``[R]`` of rays through the deformed body,
-        marched, warped, shaded and composited in rounds (class docstring)."""
+        marched, warped, shaded and composited in rounds (class docstring). ``camera``: these are the camera's rays,
+        whose encoded directions :meth:`_encode` keeps for the next frame (the shadow map's are not)."""
         if mode == "rest":
             out = render_rays(
                 self.field, self.grid, origins, directions, far=far, background=(0.0, 0.0, 0.0), chunk=self.chunk
@@ -519,10 +552,7 @@ class DeformedRenderer:
         aabb = frame.aabb.cpu()  # one transfer per trace, not per round
         grid = frame.occupancy.to(torch.uint8)
         march = march_start(origins, directions, 0.0, far, aabb)
-        with self._precision():  # once per ray, not per sample (and gathered in float16 under half precision)
-            encoded = self.field.encode_directions(directions)
-            if self.half_precision:
-                encoded = encoded.half()
+        encoded = self._encode(directions, reuse=camera)
         sums = composite_start(count, device)
         settings = dict(
             max_step=64.0 * self.min_step if c.cone_angle > 0.0 else None,
@@ -628,6 +658,7 @@ class DeformedRenderer:
             torch.full((texel_points.shape[0],), 1e10, device=device),
             frame,
             mode,
+            camera=False,
         )
         shadow_map = (1.0 - opacity).clamp(0.0, 1.0).reshape(M, M)
 
