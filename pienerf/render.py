@@ -241,7 +241,8 @@ class DeformedFrame:
         ip_displacement: float32 ``[K, 3]`` u(x_k), metres.
         F: float32 ``[K, 3, 3]``; grad_F: float32 ``[K, 3, 3, 3]`` per metre (Eq. 12, 15).
         ip_hash: spatial hash over ``ip_deformed`` for the 3-nearest-IP queries.
-        aabb: ``[2, 3]`` march box, metres; occupancy: bool ``[Gx, Gy, Gz]`` deformed-space grid over it.
+        aabb: float32 ``[2, 3]`` march box, metres, on the host (the march and the splat take it there);
+            occupancy: bool ``[Gx, Gy, Gz]`` deformed-space grid over it.
     """
 
     ip_deformed: torch.Tensor
@@ -381,9 +382,12 @@ class DeformedRenderer:
         self._knn_radius = 2.0 * self._cutoff_max
         self.min_step = field.config.min_step(field.aabb.cpu())
         occupied = torch.nonzero(grid.occupied).to(device)
-        self._cell_size = grid.cell_size.to(device=device, dtype=torch.float64)
-        self._cells_lo = grid.aabb.to(device=device, dtype=torch.float64)[0] + occupied * self._cell_size
-        centres = (self._cells_lo + 0.5 * self._cell_size).float().contiguous()
+        cell_size = grid.cell_size.to(device=device, dtype=torch.float64)
+        self._cell_size_host = cell_size.cpu()  # the splat's kernel takes it by value
+        self._cells_lo = grid.aabb.to(device=device, dtype=torch.float64)[0] + occupied * cell_size
+        # float32 rest box and cell on the host, from which each frame grows its deformed grid (frame)
+        self._rest_box = (*grid.aabb.detach().float().cpu(), grid.cell_size.detach().float().cpu())
+        centres = (self._cells_lo + 0.5 * cell_size).float().contiguous()
         rest_hash = SpatialHash(self.ip_rest.float().contiguous(), self._cutoff_median)
         nearest, _ = rest_hash.knn(centres, 1, max_radius=float(torch.linalg.vector_norm(grid.aabb[1] - grid.aabb[0])))
         self._cell_ip = nearest[:, 0].long()
@@ -439,16 +443,18 @@ class DeformedRenderer:
         displacement = position - self.model.ips.position  # in float64: exactly 0 for q = 0
         device = backend.torch_device()
         ip_deformed = position.float().to(device).contiguous()
+        # The frame's one transfer to the host: the deformed IPs' bounds, which size the grid. The box and the shape
+        # are then worked out on the host (float32, as the rest grid's box), where the splat and the march read them.
+        bounds = torch.stack([ip_deformed.amin(0), ip_deformed.amax(0)]).cpu()
         pad = self._cutoff_max
-        rest_lo, rest_hi = self.grid.aabb.to(device).float()
-        cell = self.grid.cell_size.to(device).float()
-        grow_lo = torch.ceil(((rest_lo - (ip_deformed.amin(0) - pad)) / cell).clamp_min(0))
-        grow_hi = torch.ceil((((ip_deformed.amax(0) + pad) - rest_hi) / cell).clamp_min(0))
+        rest_lo, rest_hi, cell = self._rest_box
+        grow_lo = torch.ceil(((rest_lo - (bounds[0] - pad)) / cell).clamp_min(0))
+        grow_hi = torch.ceil((((bounds[1] + pad) - rest_hi) / cell).clamp_min(0))
         aabb = torch.stack([rest_lo - grow_lo * cell, rest_hi + grow_hi * cell])
         shape = tuple(int(v) for v in (self.grid.resolution + grow_lo + grow_hi).tolist())
         F64, G64, u64 = (t.to(device) for t in (F, grad_F, displacement))
         occupancy = splat_occupancy(
-            self._cells_lo, self._cell_size, self._cell_ip, self.ip_rest, u64, F64, G64, aabb.double(), shape
+            self._cells_lo, self._cell_size_host, self._cell_ip, self.ip_rest, u64, F64, G64, aabb.double(), shape
         )
         return DeformedFrame(
             ip_deformed=ip_deformed,
@@ -549,8 +555,8 @@ class DeformedRenderer:
             return out["rgb"], out["opacity"], out["depth"] * out["opacity"]
         c = self.field.config
         count, device = origins.shape[0], origins.device
-        aabb = frame.aabb.cpu()  # one transfer per trace, not per round
-        grid = frame.occupancy.to(torch.uint8)
+        aabb = frame.aabb.cpu()  # a no-op for frame's own (on the host); else one transfer per trace, not per round
+        grid = frame.occupancy.view(torch.uint8)  # the same bytes: bool is stored as 0 or 1
         march = march_start(origins, directions, 0.0, far, aabb)
         encoded = self._encode(directions, reuse=camera)
         sums = composite_start(count, device)
