@@ -612,11 +612,11 @@ def splat_occupancy(
 
     Args:
         cells_lo: float64 ``[C, 3]`` lower corners of the occupied rest cells, metres.
-        cell_size: float64 ``[3]`` rest cell edges, metres.
+        cell_size: float64 ``[3]`` rest cell edges, metres (read on the host: pass it there to spare a transfer).
         nearest_ip: int64 ``[C]`` nearest rest IP of each cell.
         ip_rest, ip_displacement: float64 ``[K, 3]`` x_k and u(x_k), metres.
         F, grad_F: float64 ``[K, 3, 3]`` and ``[K, 3, 3, 3]`` at the IPs.
-        aabb: ``[2, 3]`` box of the deformed grid, metres.
+        aabb: ``[2, 3]`` box of the deformed grid, metres (read on the host, like ``cell_size``).
         shape: cells of the deformed grid per axis.
 
     Returns:
@@ -626,7 +626,7 @@ def splat_occupancy(
     f64 = dict(dtype=torch.float64, device=device)
     grid = torch.zeros(shape, dtype=torch.uint8, device=device)
     if cells_lo.shape[0] == 0:
-        return grid.bool()
+        return grid.view(torch.bool)
     box = aabb.detach().to(dtype=torch.float64).cpu()
     deformed_cell = (box[1] - box[0]) / torch.tensor(shape, dtype=torch.float64)
     wp.launch(
@@ -646,7 +646,7 @@ def splat_occupancy(
         ],
         device=backend.warp_device(),
     )
-    return grid.bool()
+    return grid.view(torch.bool)  # no copy: the kernel writes only 0 and 1, which is how bool is stored
 
 
 def _check_warp_arguments(samples, neighbours, distances, ip_deformed, ip_displacement, F, grad_F, cutoff):

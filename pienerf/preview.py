@@ -43,6 +43,7 @@ __all__ = [
     "ParticleRenderBackend",
     "RefinementSchedule",
     "RenderBackend",
+    "ViewRays",
 ]
 
 
@@ -297,6 +298,7 @@ class NerfRenderBackend:
         self.field, self.grid, self.mode, self.ground = field, grid, mode, ground
         self.cutoff_scale = cutoff_scale
         self.downscale = downscale
+        self._rays = ViewRays()
         self.rebind(model)
 
     @property
@@ -331,12 +333,9 @@ class NerfRenderBackend:
         ground square, else ``inf``; ``shadow`` (when asked, with a ground) is the share of light the object
         blocks on the visible ground, 0 on the object.
         """
-        device = backend.torch_device()
         width, height = cameras.width, cameras.height
         w, h = max(1, math.ceil(width / self.downscale)), max(1, math.ceil(height / self.downscale))
-        origins, directions = cameras.to("cpu").grid_rays(view, w, h)
-        origins = origins.float().to(device).contiguous()
-        directions = directions.float().to(device).contiguous()
+        origins, directions = self._rays(cameras, view, w, h)
         frame = None if self.mode == "rest" and self.ground is None else self._deformed_frame(q)
         out = self.renderer.render(
             q, rays=(origins, directions), mode=self.mode, background=(0.0, 0.0, 0.0), ground=self.ground, frame=frame
@@ -359,6 +358,36 @@ class NerfRenderBackend:
         if (h, w) != (height, width):
             frame = [_upsample(image, height, width) for image in frame]
         return Frame(frame[0], frame[1], frame[2] if blocked is not None else None)
+
+
+class ViewRays:
+    """The rays through a grid of blocks over one camera view (:meth:`pienerf.data.Cameras.grid_rays`), on the backend
+    device, made again only when something they depend on changes.
+
+    While the camera stays still (the user drags the body, not the view) every call hands back the very same
+    tensors, so nothing is generated on the host or uploaded per frame, and the renderer keeps their encoded
+    directions too (:meth:`pienerf.render.DeformedRenderer.render`). The key is the view's pose and intrinsics as
+    stored (their bytes, so even the sign of a zero counts), the view index, the image and grid sizes and the device.
+    The returned tensors are shared between calls: read them, never write to them.
+    """
+
+    def __init__(self):
+        self._key = None
+        self._rays: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def __call__(self, cameras: Cameras, view: int, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Float32 contiguous ``origins [height·width, 3]`` (metres) and unit ``directions [height·width, 3]`` of
+        view ``view`` seen as a ``width × height`` grid (row-major)."""
+        device = backend.torch_device()
+        view = int(view)
+        pose = [cameras.c2w[view]] + [getattr(cameras, k)[view : view + 1] for k in ("fx", "fy", "cx", "cy")]
+        values = torch.cat([t.detach().reshape(-1) for t in pose]).cpu()
+        key = (view, width, height, cameras.width, cameras.height, str(device), values.dtype, values.numpy().tobytes())
+        if key != self._key:
+            origins, directions = cameras.to("cpu").grid_rays(view, width, height)
+            self._rays = tuple(t.float().to(device).contiguous() for t in (origins, directions))
+            self._key = key
+        return self._rays
 
 
 def _upsample(image: torch.Tensor, height: int, width: int) -> torch.Tensor:
@@ -528,4 +557,3 @@ class RefinementSchedule:
             self._level = self.still
             return self.still
         return None
-

@@ -241,7 +241,8 @@ class DeformedFrame:
         ip_displacement: float32 ``[K, 3]`` u(x_k), metres.
         F: float32 ``[K, 3, 3]``; grad_F: float32 ``[K, 3, 3, 3]`` per metre (Eq. 12, 15).
         ip_hash: spatial hash over ``ip_deformed`` for the 3-nearest-IP queries.
-        aabb: ``[2, 3]`` march box, metres; occupancy: bool ``[Gx, Gy, Gz]`` deformed-space grid over it.
+        aabb: float32 ``[2, 3]`` march box, metres, on the host (the march and the splat take it there);
+            occupancy: bool ``[Gx, Gy, Gz]`` deformed-space grid over it.
     """
 
     ip_deformed: torch.Tensor
@@ -367,6 +368,7 @@ class DeformedRenderer:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
         self._half_copies, self._half_versions = None, None  # float16 MLPs and the field's versions they copy
+        self._encoded = None  # (directions, their _version, what the encoding depends on, encoded): _encode
         self.framework = backend.check_framework(framework)
         self._rest_occupancy = grid.occupied.to(device=device, dtype=torch.uint8).contiguous()
         self._rest_aabb = grid.aabb.detach().float().cpu()
@@ -380,9 +382,12 @@ class DeformedRenderer:
         self._knn_radius = 2.0 * self._cutoff_max
         self.min_step = field.config.min_step(field.aabb.cpu())
         occupied = torch.nonzero(grid.occupied).to(device)
-        self._cell_size = grid.cell_size.to(device=device, dtype=torch.float64)
-        self._cells_lo = grid.aabb.to(device=device, dtype=torch.float64)[0] + occupied * self._cell_size
-        centres = (self._cells_lo + 0.5 * self._cell_size).float().contiguous()
+        cell_size = grid.cell_size.to(device=device, dtype=torch.float64)
+        self._cell_size_host = cell_size.cpu()  # the splat's kernel takes it by value
+        self._cells_lo = grid.aabb.to(device=device, dtype=torch.float64)[0] + occupied * cell_size
+        # float32 rest box and cell on the host, from which each frame grows its deformed grid (frame)
+        self._rest_box = (*grid.aabb.detach().float().cpu(), grid.cell_size.detach().float().cpu())
+        centres = (self._cells_lo + 0.5 * cell_size).float().contiguous()
         rest_hash = SpatialHash(self.ip_rest.float().contiguous(), self._cutoff_median)
         nearest, _ = rest_hash.knn(centres, 1, max_radius=float(torch.linalg.vector_norm(grid.aabb[1] - grid.aabb[0])))
         self._cell_ip = nearest[:, 0].long()
@@ -394,6 +399,35 @@ class DeformedRenderer:
         if self._half_versions != versions:
             self._half_copies, self._half_versions = self.field.half_mlps(), versions
         return self._half_copies
+
+    def _encode(self, directions: torch.Tensor, reuse: bool) -> torch.Tensor:
+        """The field's encoding ``[R, C]`` of the rays' unit directions ``[R, 3]``
+        (:meth:`pienerf.nerf.NGPField.encode_directions`; float16 under :attr:`half_precision`).
+
+        With ``reuse`` the last camera rays' encoding is kept and handed back while :meth:`render` is given the very
+        same directions tensor, unchanged since (same ``_version``), for the same field, field config and precision:
+        a still camera (a viewer's, a benchmark's) then skips the encoding's ~40 small elementwise operations and
+        its cast over every ray each frame. The tensor itself is held, so its memory cannot pass to another tensor
+        that would then be taken for it. Inference-mode tensors keep no ``_version``, so theirs is never reused.
+        """
+        reuse = reuse and not directions.is_inference()
+        depends_on = (self.field, self.field.config, self.half_precision)
+        cached = self._encoded
+        if (
+            reuse
+            and cached is not None
+            and cached[0] is directions
+            and cached[1] == directions._version
+            and cached[2] == depends_on  # the field by identity, its frozen config by value
+        ):
+            return cached[3]
+        with self._precision():  # once per ray, not per sample (and gathered in float16 under half precision)
+            encoded = self.field.encode_directions(directions)
+            if self.half_precision:
+                encoded = encoded.half()
+        if reuse:
+            self._encoded = (directions, directions._version, depends_on, encoded)
+        return encoded
 
     def _precision(self):
         """The context the field's queries run in: float16 autocast with :attr:`half_precision`."""
@@ -409,16 +443,18 @@ class DeformedRenderer:
         displacement = position - self.model.ips.position  # in float64: exactly 0 for q = 0
         device = backend.torch_device()
         ip_deformed = position.float().to(device).contiguous()
+        # The frame's one transfer to the host: the deformed IPs' bounds, which size the grid. The box and the shape
+        # are then worked out on the host (float32, as the rest grid's box), where the splat and the march read them.
+        bounds = torch.stack([ip_deformed.amin(0), ip_deformed.amax(0)]).cpu()
         pad = self._cutoff_max
-        rest_lo, rest_hi = self.grid.aabb.to(device).float()
-        cell = self.grid.cell_size.to(device).float()
-        grow_lo = torch.ceil(((rest_lo - (ip_deformed.amin(0) - pad)) / cell).clamp_min(0))
-        grow_hi = torch.ceil((((ip_deformed.amax(0) + pad) - rest_hi) / cell).clamp_min(0))
+        rest_lo, rest_hi, cell = self._rest_box
+        grow_lo = torch.ceil(((rest_lo - (bounds[0] - pad)) / cell).clamp_min(0))
+        grow_hi = torch.ceil((((bounds[1] + pad) - rest_hi) / cell).clamp_min(0))
         aabb = torch.stack([rest_lo - grow_lo * cell, rest_hi + grow_hi * cell])
         shape = tuple(int(v) for v in (self.grid.resolution + grow_lo + grow_hi).tolist())
         F64, G64, u64 = (t.to(device) for t in (F, grad_F, displacement))
         occupancy = splat_occupancy(
-            self._cells_lo, self._cell_size, self._cell_ip, self.ip_rest, u64, F64, G64, aabb.double(), shape
+            self._cells_lo, self._cell_size_host, self._cell_ip, self.ip_rest, u64, F64, G64, aabb.double(), shape
         )
         return DeformedFrame(
             ip_deformed=ip_deformed,
@@ -457,7 +493,9 @@ class DeformedRenderer:
             q: ``[nT, 3]`` generalized coordinates (Eq. 9); ignored with ``mode="rest"``.
             cameras: the view ``view`` of these cameras is rendered, at ``resolution × resolution`` pixels
                 over its image (default: the cameras' own size); or
-            rays: ``(origins [R, 3], unit directions [R, 3])``, metres, instead of cameras.
+            rays: ``(origins [R, 3], unit directions [R, 3])``, metres, instead of cameras. Passing the very same
+                float32 directions tensor (on the backend device) frame after frame, unchanged, reuses its encoding
+                (:meth:`_encode`).
             mode: ``"quadratic"`` (Eq. 20), ``"linear"`` (first-order warp) or ``"rest"`` (the undeformed NeRF,
                 :func:`pienerf.nerf.render_rays`).
             background: ``[3]`` colour behind everything.
@@ -506,9 +544,10 @@ class DeformedRenderer:
             result = {k: (v if k == "shadow_map" else v.reshape(*image_shape, *v.shape[1:])) for k, v in result.items()}
         return result
 
-    def _trace(self, origins, directions, far, frame: DeformedFrame, mode: str):
+    def _trace(self, origins, directions, far, frame: DeformedFrame, mode: str, camera: bool = True):
         """Premultiplied colour ``[R, 3]``, opacity ``[R]`` and ``Σ w t`` ``[R]`` of rays through the deformed body,
-        marched, warped, shaded and composited in rounds (class docstring)."""
+        marched, warped, shaded and composited in rounds (class docstring). ``camera``: these are the camera's rays,
+        whose encoded directions :meth:`_encode` keeps for the next frame (the shadow map's are not)."""
         if mode == "rest":
             out = render_rays(
                 self.field, self.grid, origins, directions, far=far, background=(0.0, 0.0, 0.0), chunk=self.chunk
@@ -516,13 +555,10 @@ class DeformedRenderer:
             return out["rgb"], out["opacity"], out["depth"] * out["opacity"]
         c = self.field.config
         count, device = origins.shape[0], origins.device
-        aabb = frame.aabb.cpu()  # one transfer per trace, not per round
-        grid = frame.occupancy.to(torch.uint8)
+        aabb = frame.aabb.cpu()  # a no-op for frame's own (on the host); else one transfer per trace, not per round
+        grid = frame.occupancy.view(torch.uint8)  # the same bytes: bool is stored as 0 or 1
         march = march_start(origins, directions, 0.0, far, aabb)
-        with self._precision():  # once per ray, not per sample (and gathered in float16 under half precision)
-            encoded = self.field.encode_directions(directions)
-            if self.half_precision:
-                encoded = encoded.half()
+        encoded = self._encode(directions, reuse=camera)
         sums = composite_start(count, device)
         settings = dict(
             max_step=64.0 * self.min_step if c.cone_angle > 0.0 else None,
@@ -628,6 +664,7 @@ class DeformedRenderer:
             torch.full((texel_points.shape[0],), 1e10, device=device),
             frame,
             mode,
+            camera=False,
         )
         shadow_map = (1.0 - opacity).clamp(0.0, 1.0).reshape(M, M)
 

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
 import torch
 
-from pienerf.preview import RefinementSchedule
+from pienerf.model import DiscretizationConfig, QGMLSModel
+from pienerf.preview import NerfRenderBackend, RefinementSchedule, ViewRays
+from pienerf.render import MeshAlbedoField
+from pienerf.sampling import grid_sample
+from pienerf.scenes import scene_cameras, scene_density
 
 
 def test_refinement_schedule_is_coarse_while_moving_and_refines_once_when_still():
@@ -110,3 +115,53 @@ def test_bad_budgets_and_levels_are_refused_with_the_fix():
         schedule.record(4, -0.01)
     with pytest.raises(ValueError, match="level must be the integer downscale"):
         schedule.record(0, 0.01)
+
+
+def test_view_rays_are_made_again_only_when_the_view_changes(device):
+    """A still camera gets the very same device tensors back (the renderer then keeps their encoding too); a moved
+    camera, other intrinsics, another view or another grid size get fresh rays, equal to the cameras' own."""
+    cameras = scene_cameras("teapot", views=2, resolution=16)
+    rays = ViewRays()
+
+    def check(got, cameras, view, width, height):
+        expected = cameras.grid_rays(view, width, height)
+        for tensor, reference in zip(got, expected, strict=True):
+            assert tensor.dtype == torch.float32 and tensor.is_contiguous() and tensor.device.type == device
+            assert torch.equal(tensor.cpu(), reference.float())
+
+    first = rays(cameras, 0, 8, 6)
+    check(first, cameras, 0, 8, 6)
+    assert all(a is b for a, b in zip(rays(cameras, 0, 8, 6), first, strict=True)), "a still camera: same tensors"
+    copy = dataclasses.replace(cameras, c2w=cameras.c2w.clone(), fx=cameras.fx.clone())
+    assert rays(copy, 0, 8, 6)[1] is first[1], "equal cameras in other tensors are still the same view"
+
+    c2w = cameras.c2w.clone()
+    c2w[0, 0, 3] += 0.01
+    moved = dataclasses.replace(cameras, c2w=c2w)
+    zoomed = dataclasses.replace(cameras, fx=cameras.fx * 1.5)
+    for changed, view, width, height in ((moved, 0, 8, 6), (zoomed, 0, 8, 6), (cameras, 1, 8, 6), (cameras, 0, 4, 3)):
+        got = rays(changed, view, width, height)
+        assert got[0] is not first[0] and got[1] is not first[1]
+        check(got, changed, view, width, height)
+    assert rays(cameras, 0, 8, 6)[1] is not first[1], "only the last view's rays are kept"
+
+
+def test_a_still_camera_renders_the_nerf_without_encoding_its_rays_again(device, monkeypatch):
+    field = MeshAlbedoField("teapot")
+    particles = grid_sample(scene_density("teapot"), 0.06)
+    model = QGMLSModel.from_particles(particles, DiscretizationConfig(kernel_count=8))
+    preview = NerfRenderBackend(field, field.occupancy_grid(32), model, downscale=2)
+    calls = []
+    encode = field.encode_directions
+    monkeypatch.setattr(field, "encode_directions", lambda d: calls.append(d) or encode(d))
+    cameras = scene_cameras("teapot", views=2, resolution=24)
+    q = torch.zeros(model.shape_count, 3, dtype=torch.float64, device=model.device)
+    first = preview.render(q, cameras, 0)
+    assert len(calls) == 1 and first.rgba.shape == (24, 24, 4) and float(first.rgba[..., 3].max()) > 0.5
+    dragged = preview.render(q + 0.01, cameras, 0)
+    again = preview.render(q, cameras, 0)
+    assert len(calls) == 1, "the still camera's rays were encoded again"
+    assert torch.equal(again.rgba, first.rgba) and torch.equal(again.depth, first.depth)
+    assert not torch.equal(dragged.rgba, first.rgba)
+    preview.render(q, cameras, 1)
+    assert len(calls) == 2, "another view must be encoded"

@@ -7,6 +7,7 @@ teapot mesh deformed by the same Q-GMLS displacement and ray cast with its albed
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -158,7 +159,12 @@ def test_rendering_in_rounds_matches_one_full_march(teapot, framework):
         DeformedRenderer(field, renderer.grid, model, steps_per_round=3, round_samples=300, framework=framework),
         DeformedRenderer(field, renderer.grid, model, steps_per_round=128, framework=framework),
         DeformedRenderer(
-            field, renderer.grid, model, first_round_steps=8, steps_per_round=128, round_samples=4096,
+            field,
+            renderer.grid,
+            model,
+            first_round_steps=8,
+            steps_per_round=128,
+            round_samples=4096,
             framework=framework,
         ),
     )
@@ -277,6 +283,47 @@ def test_shadow_on_the_ground_is_darker_under_the_object(teapot):
     assert float(brightness[shadowed].mean()) < 0.7 * float(brightness[lit].mean())
     lit_level = sum(ground.albedo) / 3 * (ground.ambient + ground.diffuse * _light_cosine(ground))
     assert abs(float(brightness[lit].mean()) - lit_level) < 1e-4
+
+
+def test_encoded_directions_are_reused_while_the_rays_are_the_same(teapot, monkeypatch):
+    """The camera rays' encoding is kept: the very same directions tensor, unchanged, is not encoded again; a change
+    in place, another tensor or another field config is; the shadow map's rays neither reuse nor evict it; the
+    images are the same either way."""
+    model, field, renderer, q = teapot
+    renderer = DeformedRenderer(field, renderer.grid, model)
+    calls = []
+    encode = field.encode_directions
+    monkeypatch.setattr(field, "encode_directions", lambda d: calls.append(d) or encode(d))
+    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 24, fov=0.9)
+    origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(0))
+    frame = renderer.frame(q)
+
+    def render(rays_directions, **kwargs):
+        return renderer.render(q, rays=(origins, rays_directions), frame=frame, **kwargs)
+
+    first = render(directions)
+    assert len(calls) == 1 and calls[0] is directions
+    again = render(directions)
+    assert len(calls) == 1, "the same unchanged directions were encoded again"
+    directions.mul_(1.0)  # same values, new _version
+    changed = render(directions)
+    assert len(calls) == 2, "directions changed in place must be encoded again"
+    copy = directions.clone()
+    other = render(copy)
+    assert len(calls) == 3 and calls[2] is copy, "another tensor must be encoded"
+    monkeypatch.setattr(field, "config", dataclasses.replace(field.config, sh_degree=2))
+    render(copy)
+    assert len(calls) == 4, "a field config of other harmonics must encode again"
+    for out in (again, changed, other):
+        for key in ("rgb", "alpha", "depth"):
+            assert torch.equal(out[key], first[key]), key
+
+    ground = GroundPlane(extent=0.9, shadow_resolution=16)
+    shadowed = render(copy, ground=ground)
+    assert len(calls) == 5 and calls[4] is not copy, "only the shadow map's rays are encoded"
+    render(copy, ground=ground)
+    assert len(calls) == 6 and calls[5] is not copy, "the shadow map's rays must not evict the camera's encoding"
+    assert torch.equal(render(copy, ground=ground)["rgb"], shadowed["rgb"])
 
 
 def _light_cosine(ground: GroundPlane) -> float:
