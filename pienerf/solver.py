@@ -33,7 +33,6 @@ from pienerf.materials import Material
 from pienerf.model import PointHandle, QGMLSModel
 
 __all__ = [
-    "HESSIAN_PRECISIONS",
     "ControlQGMLS",
     "PlaneCollider",
     "PointForces",
@@ -44,10 +43,6 @@ __all__ = [
     "StateQGMLS",
     "StepReport",
 ]
-
-HESSIAN_PRECISIONS = {"auto": None, "float64": torch.float64, "float32": torch.float32}
-"""The values of :attr:`SolverConfig.hessian_precision` and the block-product dtypes they stand for (``None``: chosen
-by the device, :meth:`SolverConfig.hessian_product_dtype`)."""
 
 
 @dataclass(frozen=True)
@@ -128,16 +123,14 @@ class SolverConfig:
             raise ValueError("factor_reuse needs rayleigh_beta = 0: stiffness damping uses each step's own K(q_n)")
         if self.hessian_updates is not None and self.hessian_updates < 1:
             raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
-        if self.hessian_precision not in HESSIAN_PRECISIONS:
-            raise ValueError(f"hessian_precision must be one of {sorted(HESSIAN_PRECISIONS)}, got "
+        if self.hessian_precision not in backend.PRECISIONS:
+            raise ValueError(f"hessian_precision must be one of {sorted(backend.PRECISIONS)}, got "
                              f"{self.hessian_precision!r}")
 
     def hessian_product_dtype(self, device: torch.device | str) -> torch.dtype:
-        """The torch dtype of ``hessian_precision`` for a model on ``device`` (``"auto"``: float32 on CUDA)."""
-        dtype = HESSIAN_PRECISIONS[self.hessian_precision]
-        if dtype is None:
-            dtype = torch.float32 if torch.device(device).type == "cuda" else torch.float64
-        return dtype
+        """The torch dtype of ``hessian_precision`` for a model on ``device``
+        (:func:`kernels.backend.precision_dtype`)."""
+        return backend.precision_dtype(self.hessian_precision, device)
 
 
 @dataclass
@@ -494,7 +487,6 @@ class SolverQGMLS:
 
             clock = time.perf_counter()
             if fresh:
-
                 exact = None
                 if self.step_integrator is not self.integrator:  # float64 products, should float32 ones break H
                     exact = functools.partial(self._float64_newton_matrix, q, (q_hat, q_n, inv_h2, inv_h, f_ext),

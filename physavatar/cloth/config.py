@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
+from kernels import backend
+
 __all__ = ["DENSITY_RANGE", "LINEAR_SOLVERS", "STIFFNESS_RANGE", "ClothConfig"]
 
 DENSITY_RANGE = (200.0, 640.0)
@@ -127,7 +129,7 @@ class ClothConfig:
             raise ValueError(f"gravity must have 3 components, got {self.gravity}")
         if self.elastic_projection not in ("auto", "abs", "clamp"):
             raise ValueError(f"elastic_projection ({self.elastic_projection!r}) must be 'auto', 'abs' or 'clamp'")
-        if self.psd_precision not in ("auto", "float32", "float64"):
+        if self.psd_precision not in backend.PRECISIONS:
             raise ValueError(f"psd_precision ({self.psd_precision!r}) must be 'auto', 'float32' or 'float64'")
         if self.membrane_filter not in ("eigen", "stress"):
             raise ValueError(f"membrane_filter ({self.membrane_filter!r}) must be 'eigen' or 'stress'")
@@ -143,10 +145,9 @@ class ClothConfig:
             raise ValueError(f"candidate_margin ({self.candidate_margin}) must be a non-negative distance, m")
 
     def eigen_dtype(self, device: torch.device) -> torch.dtype:
-        """The dtype the PSD filter decomposes the element Hessians in on ``device`` (``psd_precision``)."""
-        if self.psd_precision == "auto":
-            return torch.float32 if device.type == "cuda" else torch.float64
-        return torch.float32 if self.psd_precision == "float32" else torch.float64
+        """The dtype the PSD filter decomposes the element Hessians in on ``device`` (``psd_precision``,
+        :func:`kernels.backend.precision_dtype`)."""
+        return backend.precision_dtype(self.psd_precision, device)
 
     @property
     def young(self) -> float:
