@@ -71,7 +71,8 @@ class ClothConfig:
             anew. Larger margins mean fewer searches and more candidates to filter. ``None``: 5 mm on CUDA, 2 mm on
             the CPU, where filtering many candidates costs more than searching again: those were the fastest
             margins of skirt7271 walking on each device (``docs/benchmarks.md``).
-        psd_precision: the dtype in which the PSD filter decomposes the float64 element Hessians: ``"float32"``,
+        psd_precision: the dtype in which the PSD filter decomposes the float64 membrane and bending Hessians
+            (the barrier's always in float64: :func:`physavatar.cloth.newton_system.filtered_elements`): ``"float32"``,
             ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi takes about two thirds of
             the time in float32 and the walk of skirt7271 took as many Newton iterations (489) and 43.4 against
             46.1 ms a frame on an H100; float64 on the CPU. The filtered matrices stay PSD in either

@@ -181,7 +181,7 @@ class IncrementalPotential:
             term_energies.append(terms.energy)
             term_grad.index_add_(0, index.reshape(-1), terms.grad.reshape(-1, 3))
             if index.shape[0] or reach is not None and reach.shape[0]:
-                elements.append(NewtonElement(index, terms.hess, dt2, projection, reach))
+                elements.append(NewtonElement(index, terms.hess, dt2, projection, reach, exact_psd=name == "contact"))
             if parts is not None:
                 part = parts.setdefault(name, torch.zeros_like(X))
                 part.index_add_(0, index.reshape(-1), dt2 * terms.grad.reshape(-1, 3))

@@ -2,9 +2,9 @@
 
 import torch
 
-from kernels import backend, cudss
+from kernels import backend, cudss, element_terms
 from kernels.reference.assembly import newton_matrix
-from physavatar.cloth.newton_system import NewtonElement, NewtonMatrices
+from physavatar.cloth.newton_system import NewtonElement, NewtonMatrices, filtered_elements
 from physavatar.shapes import grid_sheet
 
 F64 = torch.float64
@@ -80,3 +80,26 @@ def test_newton_pattern_grows_once_per_new_pair_and_outlives_the_step(device):
     assert fresh.pattern is not before and int(missing) == 0
     torch.testing.assert_close(matrix.to_dense(), expected, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(out, rhs + pushed, rtol=1e-12, atol=1e-12)
+
+
+def test_barrier_hessians_are_filtered_in_float64_whatever_the_elastic_precision(device):
+    """A barrier Hessian near contact: a stiffness of 10¹² along the pair's normal over ones of order 1 across it. With
+    float32 decompositions for the elastic elements, the barrier's are still decomposed in float64, so the small
+    eigenvalues (the directions the garment slides in) keep their values; an element not so marked gets float32's."""
+    torch_device = backend.torch_device()
+    g = torch.Generator().manual_seed(5)
+    basis, _ = torch.linalg.qr(torch.randn(4, 12, 12, generator=g, dtype=F64))
+    values = torch.linspace(-1.0, 2.0, 12, dtype=F64).repeat(4, 1)
+    values[:, -1] = 1e12
+    hess = ((basis * values[:, None, :]) @ basis.transpose(1, 2)).to(torch_device)
+    index = torch.arange(16, dtype=torch.int32, device=torch_device).view(4, 4)
+    barrier = NewtonElement(index, hess, 1.0, "clamp", index, exact_psd=True)
+    elastic = NewtonElement(index, hess, 1.0, "clamp", None)
+    exact = element_terms.project_psd(hess)
+    filtered_barrier, filtered_elastic = filtered_elements([barrier, elastic], torch.float32)
+    assert torch.equal(filtered_barrier.hess, exact) and filtered_barrier.projection == "none"
+    kept = torch.linalg.eigvalsh(filtered_barrier.hess.cpu())[:, :-1]  # all but the normal's
+    torch.testing.assert_close(kept, values[:, :-1].clamp_min(0.0), rtol=0.0, atol=1e-3)
+    # float32's rounding, relative to 10¹², swamps the sliding directions' stiffness
+    rounded = torch.linalg.eigvalsh(filtered_elastic.hess.cpu())[:, :-1]
+    assert float((rounded - values[:, :-1].clamp_min(0.0)).abs().max()) > 10.0

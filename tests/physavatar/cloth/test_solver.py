@@ -302,10 +302,14 @@ def test_cpu_steps_are_bitwise_reproducible(device):
 def test_double_buffered_steps_write_into_their_states_as_in_place_steps_do(device):
     """Stepping from one state into another, then swapping, gives what stepping a state in place gives (bit for bit
     on the CPU), and the step writes into the output state's own tensors: their storage never moves. The number of
-    Dirichlet vertices changes on the way, so the solver's step buffers are made anew once."""
+    Dirichlet vertices changes on the way, so the solver's step buffers are made anew once.
+
+    On CUDA, atomic sums make two runs of the same steps differ in their last bits, and such a difference can move a
+    Newton loop's stop by one iteration: the states then agree to the Newton tolerance, not to rounding. The sheet
+    is stepped to a tolerance whose last step, 1e-5 m/s × 0.04 s, lies well under the comparison's 1e-5 m."""
     runs = {}
     for buffered in (False, True):
-        solver, control, body, _ = _sheet_over_sphere(8)
+        solver, control, body, _ = _sheet_over_sphere(8, ClothConfig(newton_tolerance=1e-5))
         pinned = _pinned(solver.x_rest.cpu(), torch.tensor([0, 7]), body.cpu())
         made = [solver.initial_state(), solver.initial_state()]
         storage = [(s.x.data_ptr(), s.v.data_ptr()) for s in made]
