@@ -386,7 +386,7 @@ class DeformedRenderer:
         self._cell_size_host = cell_size.cpu()  # the splat's kernel takes it by value
         self._cells_lo = grid.aabb.to(device=device, dtype=torch.float64)[0] + occupied * cell_size
         # float32 rest box and cell on the host, from which each frame grows its deformed grid (frame)
-        self._rest_box = (*grid.aabb.detach().float().cpu(), grid.cell_size.detach().float().cpu())
+        self._rest_box = (*self._rest_aabb, self._cell_size_host.float())
         centres = (self._cells_lo + 0.5 * cell_size).float().contiguous()
         rest_hash = SpatialHash(self.ip_rest.float().contiguous(), self._cutoff_median)
         nearest, _ = rest_hash.knn(centres, 1, max_radius=float(torch.linalg.vector_norm(grid.aabb[1] - grid.aabb[0])))
