@@ -223,17 +223,17 @@ def synchronize() -> None:
         torch.cuda.synchronize()
 
 
-def _check_on_device(tensor: torch.Tensor, what: str) -> None:
+def _check_on_device(tensor: torch.Tensor, what: str, strided: bool = False) -> None:
     if tensor.device.type != _require_init():
         expected = torch_device()
         raise ValueError(
             f"{what}: tensor is on {tensor.device}, kernels run on {expected}; move it with .to('{expected}')"
         )
-    if not tensor.is_contiguous():
+    if not strided and not tensor.is_contiguous():
         raise ValueError(f"{what}: tensor is not contiguous; call .contiguous() first")
 
 
-def to_warp(tensor: torch.Tensor, dtype=None, requires_grad: bool | None = None):
+def to_warp(tensor: torch.Tensor, dtype=None, requires_grad: bool | None = None, strided: bool = False):
     """A zero-copy ``wp.array`` view of ``tensor``.
 
     Args:
@@ -241,10 +241,12 @@ def to_warp(tensor: torch.Tensor, dtype=None, requires_grad: bool | None = None)
         dtype: Warp dtype of the view, e.g. ``wp.vec3`` for a ``[N, 3]`` float32 tensor; ``None``
             keeps the scalar type.
         requires_grad: forwarded to ``wp.from_torch``.
+        strided: accept any strides (a transposed view, say): the Warp array keeps the tensor's strides and its
+            kernel indexes through them, so nothing is copied. For kernels written for such a layout only.
     """
     import warp as wp
 
-    _check_on_device(tensor, "to_warp")
+    _check_on_device(tensor, "to_warp", strided)
     return wp.from_torch(tensor, dtype=dtype, requires_grad=requires_grad)
 
 

@@ -62,11 +62,20 @@ def _forward_case(size: str, framework: str | None) -> Case:
     )
 
 
-def _backward_case(size: str, framework: str | None) -> Case:
+def _backward_case(size: str, framework: str | None, layout: str = "forward") -> Case:
+    """The table gradient from an incoming feature gradient laid out as autograd hands it over in training
+    (``"forward"``: as the framework's forward lays out its features, which torch's matrix-product backward keeps;
+    feature-major for Warp, :func:`kernels.hashgrid.hashgrid_backward`) or as a contiguous ``[N, L F]``
+    (``"row_major"``)."""
     x, table, resolutions, reachable_rows, params = _inputs(size, framework)
     points, row_bytes = x.shape[0], 4 * _FEATURES
     table_size = table.shape[1]
-    grad_out = torch.rand(points, _LEVELS * _FEATURES, device=x.device) - 0.5
+    features = hashgrid_forward(x, table, resolutions, framework=framework)
+    generator = torch.Generator(device="cpu").manual_seed(1)
+    values = (torch.rand(points, _LEVELS * _FEATURES, generator=generator) - 0.5).to(x.device)
+    grad_out = values if layout == "row_major" else torch.empty_strided(
+        features.shape, features.stride(), device=x.device).copy_(values)
+    params = {**params, "grad_strides": list(grad_out.stride())}
     bytes_moved = points * (12 + _LEVELS * row_bytes) + table.numel() * 4 + 2 * reachable_rows * row_bytes
     return Case(
         run=lambda: hashgrid_backward(x, grad_out, resolutions, table_size, framework=framework),
@@ -84,9 +93,15 @@ def bench_hashgrid_fwd(device: str, size: str) -> Case:
     return _forward_case(size, None)
 
 
-@workload("hashgrid_bwd", "hash-grid encoding backward, [N, 32] -> [16, T, 2] table gradient, default framework")
+@workload("hashgrid_bwd", "hash-grid encoding backward, [N, 32] laid out as the forward's features (as in training) "
+          "-> [16, T, 2] table gradient, default framework")
 def bench_hashgrid_bwd(device: str, size: str) -> Case:
     return _backward_case(size, None)
+
+
+@workload("hashgrid_bwd_row_major", "hashgrid_bwd with the incoming gradient a contiguous [N, 32] instead")
+def bench_hashgrid_bwd_row_major(device: str, size: str) -> Case:
+    return _backward_case(size, None, "row_major")
 
 
 @workload("hashgrid_fwd_taichi", "hashgrid_fwd in Taichi")

@@ -49,8 +49,9 @@ def test_forward_matches_reference(device, framework, table_size, features):
 
 
 @pytest.mark.parametrize("framework", FRAMEWORKS)
+@pytest.mark.parametrize("feature_major", [False, True])
 @pytest.mark.parametrize(("table_size", "features"), [(1 << 12, 2), (3001, 3), (1 << 11, 4)])
-def test_backward_matches_reference_with_hash_collisions(device, framework, table_size, features):
+def test_backward_matches_reference_with_hash_collisions(device, framework, feature_major, table_size, features):
     x = _points(5000, seed=2)
     resolutions = level_resolutions(LEVELS, BASE, MAX)
     finest = int(resolutions[-1])
@@ -63,6 +64,9 @@ def test_backward_matches_reference_with_hash_collisions(device, framework, tabl
     assert torch.unique(rows).numel() < distinct_vertices, "distinct vertices must collide in the table"
 
     grad_out = torch.randn(5000, LEVELS * features, device=x.device)
+    if feature_major:  # the same values, laid out as a training step's gradient arrives (strides (1, N))
+        grad_out = grad_out.t().contiguous().t()
+        assert grad_out.stride() == (1, 5000)
     grad_table = hashgrid_backward(x, grad_out, resolutions, table_size, framework=framework)
     expected = hashgrid_backward_torch(x, grad_out, resolutions, table_size)
     assert grad_table.shape == (LEVELS, table_size, features)
@@ -85,6 +89,33 @@ def test_autograd_matches_reference_autograd(device, framework):
     torch.testing.assert_close(out.detach(), expected.detach(), rtol=1e-5, atol=1e-7)
     assert encoding.table.grad.abs().max() > 0
     torch.testing.assert_close(encoding.table.grad, table.grad, rtol=1e-4, atol=1e-9)
+
+
+def test_training_gradient_reaches_the_warp_kernel_feature_major_without_a_copy(device, monkeypatch):
+    """The encoding feeds a bias-free Linear, as the NeRF's density MLP: autograd hands the encoding its gradient
+    feature-major (Warp's forward returns a transposed view), and the backward passes that very tensor on."""
+    import kernels.hashgrid as module
+
+    config = HashGridConfig(levels=LEVELS, features=2, log2_table_size=11, base_resolution=BASE, max_resolution=MAX)
+    encoding = HashGridEncoding(config, framework="warp").to(backend.torch_device())
+    layer = torch.nn.Linear(config.output_dim, 16, bias=False).to(backend.torch_device())
+    seen = {}
+
+    def spy(x, grad_out, *args, **kwargs):
+        seen["stride"] = grad_out.stride()
+        return hashgrid_backward(x, grad_out, *args, **kwargs)
+
+    monkeypatch.setattr(module, "hashgrid_backward", spy)
+    x = _points(3000, seed=4)
+    out = encoding(x)
+    layer(out).relu().sum().backward()
+    assert seen["stride"] == (1, 3000)
+
+    table = encoding.table.detach().clone().requires_grad_(True)
+    layer(hashgrid_forward_torch(x, table, encoding.resolutions)).relu().sum().backward()
+    assert table.grad.abs().max() > 1e-3
+    # atomic sums in another order: a difference of a few float32 roundings of the largest entries
+    torch.testing.assert_close(encoding.table.grad, table.grad, rtol=1e-4, atol=1e-7)
 
 
 @pytest.mark.parametrize("framework", FRAMEWORKS)
@@ -174,6 +205,11 @@ def test_bad_inputs_raise_clear_errors(device):
         (lambda: hashgrid_forward(x.t().contiguous().t(), table, resolutions), ValueError, "contiguous"),
         (lambda: hashgrid_backward(x, torch.zeros(8, 5, device=dev), resolutions, 64), ValueError, r"\[N, L \* F\]"),
         (lambda: hashgrid_backward(x, torch.zeros(8, 6, device=dev), resolutions, 0), ValueError, "table_size"),
+        (
+            lambda: hashgrid_backward(x, torch.zeros(8, 12, device=dev)[:, ::2], resolutions, 64),
+            ValueError,
+            r"row-major \[N, L \* F\] or feature-major",
+        ),
     ]
     for call, error, message in cases:
         with pytest.raises(error, match=message):
