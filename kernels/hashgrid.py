@@ -474,8 +474,7 @@ def hashgrid_backward(
     features = grad_out.shape[1] // levels
     if features == 0:
         raise ValueError("grad_out has no features (shape [N, 0]); F must be at least 1")
-    feature_major = not grad_out.is_contiguous() and grad_out.t().is_contiguous()
-    if not (grad_out.is_contiguous() or feature_major):
+    if not _row_or_feature_major(grad_out):
         raise ValueError(
             f"grad_out must be row-major [N, L * F] or feature-major (strides (1, N)), got strides "
             f"{grad_out.stride()}; call .contiguous() first"
@@ -508,6 +507,12 @@ def hashgrid_backward(
     return grad_table
 
 
+def _row_or_feature_major(grad_out: torch.Tensor) -> bool:
+    """``grad_out [N, C]`` is laid out as :func:`hashgrid_backward` reads it: row-major, or the transposed view of a
+    contiguous ``[C, N]``."""
+    return grad_out.is_contiguous() or grad_out.t().is_contiguous()
+
+
 class HashGridFunction(torch.autograd.Function):
     """Differentiable encoding: ``HashGridFunction.apply(x, table, resolutions, framework)``.
 
@@ -534,10 +539,10 @@ class HashGridFunction(torch.autograd.Function):
         x, resolutions = ctx.saved_tensors
         grad_table = None
         if ctx.needs_input_grad[1]:
-            if not (grad_out.is_contiguous() or grad_out.t().is_contiguous()):
+            if not _row_or_feature_major(grad_out):
                 grad_out = grad_out.contiguous()
             # a feature-major gradient (the training step's, see hashgrid_backward) goes as it is: Warp reads it in
-            # place, where its row-major copy cost a 1M-point step ~0.9 ms on an H100 and the kernel read it slower
+            # place, 8-12 % faster on a lego training step's samples on an H100 than its row-major copy and read
             grad_table = hashgrid_backward(x, grad_out, resolutions, ctx.table_size, framework=ctx.framework)
         return None, grad_table, None, None
 
