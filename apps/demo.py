@@ -13,7 +13,7 @@ last message. Press on the body and drag: the press picks a material point and t
 depth, is the drag target until release; a click (no move) keeps the point picked for pin / push / cut. ``viser``
 serves the same panel through viser, with the particles and the integrator points as toggles; a click picks, a
 further click moves the target onto that ray at the picked depth, and a gizmo at the target moves it in 3-D. The
-spring of :class:`pienerf.picking.DragController` pulls the body. ``--smoke`` starts the viewer, runs a few steps
+spring of :class:`pienerf.sim.picking.DragController` pulls the body. ``--smoke`` starts the viewer, runs a few steps
 headless and exits 0.
 
 ``--render`` picks what the page shows (the panel's "render" menu switches it later): ``mesh`` (default) and
@@ -46,7 +46,7 @@ import sys
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from kernels import backend
-from pienerf.cameras import orbit_cameras
+from pienerf.nerf.cameras import orbit_cameras
 from pienerf.viewer import RENDER_MODES, VIEWERS, build_app
 from pienerf.viewer.origin import check_address
 

@@ -4,7 +4,7 @@
     python -m apps.nerf_startup --device cpu --size smoke --dataset ../shared/data/nerf_synthetic_lego
 
 Imports the project, initialises the backend, loads the training views, builds the field and the
-:class:`~pienerf.train.Trainer` of ``nerf_train`` at that size (:func:`apps.workloads.nerf.nerf_setup`) and runs one
+:class:`~pienerf.nerf.Trainer` of ``nerf_train`` at that size (:func:`apps.workloads.nerf.nerf_setup`) and runs one
 step, then prints one JSON line: ``first_step_s`` (seconds since the process started, from the kernel's process
 table, so the interpreter's own start counts) and ``breakdown``, the seconds of each phase (``interpreter``: process
 start to this module's first line; ``imports``; ``backend_init``; ``data``; ``field``; ``trainer``; ``first_step``,
@@ -24,9 +24,9 @@ from pathlib import Path  # noqa: E402
 
 from apps.workloads.nerf import LEGO, nerf_setup  # noqa: E402
 from kernels import backend  # noqa: E402
-from pienerf.data import load_nerf_dataset  # noqa: E402
-from pienerf.nerf import NGPField  # noqa: E402
-from pienerf.train import Trainer, start_optimizer_import  # noqa: E402
+from pienerf.nerf.datasets import load_nerf_dataset  # noqa: E402
+from pienerf.nerf.field import NGPField  # noqa: E402
+from pienerf.nerf.training import Trainer, start_optimizer_import  # noqa: E402
 
 _IMPORTS_DONE = time.perf_counter()
 
@@ -57,7 +57,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
 
     phases = {"imports": _IMPORTS_DONE - _MODULE_START}
-    start_optimizer_import()  # overlaps with what follows (pienerf.train)
+    start_optimizer_import()  # overlaps with what follows (pienerf.nerf.training)
     start = time.perf_counter()
     backend.init(args.device)
     phases["backend_init"] = time.perf_counter() - start

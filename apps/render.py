@@ -20,10 +20,10 @@ The run writes, under ``--out``:
 
 A ``[nerf]`` table renders the scene's NeRF warped by the simulated deformation (PIE-NeRF §4.6, Eq. 19–21):
 
-* ``source = "scene"`` fits a NeRF to the embedded scene's rendered views (:func:`pienerf.nerf_fit.scene_nerf`);
+* ``source = "scene"`` fits a NeRF to the embedded scene's rendered views (:func:`pienerf.scenes.scene_nerf`);
   the body is still simulated from the scene's analytic density;
 * ``source = "data:NAME"`` fits one to the NeRF-synthetic folder ``../shared/data/NAME``
-  (:func:`pienerf.nerf_fit.dataset_nerf`, upright on the ground; ``up`` is the data's up axis), and the body is
+  (:func:`pienerf.nerf.fitting.dataset_nerf`, upright on the ground; ``up`` is the data's up axis), and the body is
   sampled from the NeRF's own solid: ``scene.name`` is then not needed;
 * ``warps`` lists the ray warpings to render, each a render mode: ``"nerf"`` for the quadratic warp (Eq. 20),
   ``"nerf_linear"`` for the first-order one and ``"nerf_rest"`` for none;
@@ -36,10 +36,10 @@ The fitted NeRF is cached as a checkpoint under ``--cache-dir`` (default ``$PIE_
 
 ``outputs.mesh_edge_fraction`` splits the mesh tiles' edges until each is shorter than that fraction of the smallest
 kernel support radius, so that a bent thin part (Fig. 8's rod) shows its bend instead of a straight chord between
-far-apart vertices (:func:`pienerf.mesh_refine.split_long_edges`; the rest state renders as before).
+far-apart vertices (:func:`pienerf.render.mesh_refine.split_long_edges`; the rest state renders as before).
 
 A ``[warp_error]`` table (Fig. 8) measures, every frame, each warped-NeRF mode of a variant against the variant's own
-mesh render of the same state, both rendered again without the ground (:mod:`pienerf.warp_error`): ``region`` is a
+mesh render of the same state, both rendered again without the ground (:mod:`pienerf.render`): ``region`` is a
 rest-space box ``[[x0, y0, z0], [x1, y1, z1]]`` (m) of the material to look at (the rod), ``dilation`` the pixels
 added around its projected particles (default 2), ``label`` its name on the tiles. On the pixels near that
 material which either render covers (alpha > ½) it reports the PSNR of the colours over white and the silhouettes'

@@ -36,7 +36,7 @@ lattice boxes and beams of 4 to 78 kernels, at rest and bent, PSD-projected or n
 move (∂U/∂q stays double); its steps may take another iteration. But the Hessian's smallest eigenvalues (the rigid
 modes, ~1e-13 of the largest at rest) drown in that error: a static solve, with no mass term to lift them, may meet a
 Newton matrix that is no longer positive definite, and a spectral check of the Hessian cannot tell its zero modes.
-Double products stay this class's default for that reason; :class:`pienerf.solver.SolverQGMLS` takes single ones for
+Double products stay this class's default for that reason; :class:`pienerf.sim.solver.SolverQGMLS` takes single ones for
 its dynamic steps on CUDA only, and assembles a Newton matrix that fails to factor again with double ones.
 """
 

@@ -36,7 +36,7 @@ import trimesh
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
 from physavatar.body import Body
-from physavatar.cloth import ClothConfig, SolverCloth, StepStats
+from physavatar.cloth import ClothConfig, ClothStepReport, SolverCloth
 from physavatar.drive import BodyDriver
 from physavatar.garment import Garment, select_boundary
 from physavatar.motion import Motion
@@ -72,7 +72,7 @@ class SimulationResult:
         body_faces: ``[Fb, 3]`` int64.
         boundary_index: ``[D]`` int64 Dirichlet garment vertices.
         fps: frames per second (``Δt = 1 / fps``).
-        stats: one :class:`~physavatar.cloth.StepStats` per step (``T − 1`` of them).
+        stats: one :class:`~physavatar.cloth.ClothStepReport` per step (``T − 1`` of them).
         wall_time: seconds each step took.
     """
 
@@ -82,7 +82,7 @@ class SimulationResult:
     body_faces: torch.Tensor
     boundary_index: torch.Tensor
     fps: float
-    stats: list[StepStats]
+    stats: list[ClothStepReport]
     wall_time: list[float]
 
 
@@ -107,7 +107,7 @@ def simulate(
     config: ClothConfig | None = None,
     frames: int | None = None,
     device: str | None = None,
-    progress: bool | Callable[[int, StepStats], None] = True,
+    progress: bool | Callable[[int, ClothStepReport], None] = True,
     boundary: torch.Tensor | None = None,
 ) -> SimulationResult:
     """Simulate ``garment`` on ``body`` moving through ``motion``, one implicit step per motion frame (Eq. 5).
@@ -221,7 +221,7 @@ def write_meshes(
 
 
 def stalled_steps(result: SimulationResult) -> int:
-    """How many steps ended with a line search that could not move (``StepStats.line_search_stalled``): each left
+    """How many steps ended with a line search that could not move (``ClothStepReport.line_search_stalled``): each left
     the garment where the step's Newton iteration stood, not at a solution of Eq. 5."""
     return sum(s.line_search_stalled for s in result.stats)
 

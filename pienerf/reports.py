@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from pienerf.output_files import atomic_path, write_json
-from pienerf.solver import StepReport
+from pienerf.sim.solver import QGMLSStepReport
 
 __all__ = ["TimeBreakdown", "VolumeHistory", "plot_time_breakdown", "plot_volume_bars"]
 
@@ -18,14 +18,14 @@ __all__ = ["TimeBreakdown", "VolumeHistory", "plot_time_breakdown", "plot_volume
 @dataclass
 class TimeBreakdown:
     """Accumulated seconds per phase of the run (assembly, solve, other; warping where rendered; the device loop's
-    steps as a whole, :meth:`pienerf.solver.SolverQGMLS.step`)."""
+    steps as a whole, :meth:`pienerf.sim.solver.SolverQGMLS.step`)."""
 
     seconds: dict[str, float] = field(default_factory=lambda: {"assembly": 0.0, "solve": 0.0, "other": 0.0})
     steps: int = 0
     newton_iterations: int = 0
 
-    def add(self, report: StepReport) -> None:
-        """Accumulate one :class:`StepReport`."""
+    def add(self, report: QGMLSStepReport) -> None:
+        """Accumulate one :class:`QGMLSStepReport`."""
         self.seconds["assembly"] += report.time_assembly
         self.seconds["solve"] += report.time_solve
         self.seconds["other"] += report.time_other

@@ -14,7 +14,7 @@ y up, resting on the ground ``y = 0``, about 1 m across:
 
 Each scene is a union of parts, every part one watertight solid that exists twice, with the same geometry: as a
 triangle mesh (its vertices lie on the solid's surface) with per-vertex albedo, and as an analytic signed distance
-(boxes, capsules and spheres of :mod:`pienerf.density`; revolved profiles, tori, rounded boxes and ellipsoids
+(boxes, capsules and spheres of :mod:`pienerf.sim.density`; revolved profiles, tori, rounded boxes and ellipsoids
 here). Parts overlap instead of being joined by booleans. The renderer (:func:`render_scene`) casts rays against
 all parts' triangles: the first hit is the visible surface, wherever parts overlap. The simulator's density
 (:func:`scene_density`) is the union of the analytic solids, ``d = min_i d_i``: exact, free of tessellation error,
@@ -39,15 +39,21 @@ import torch
 
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
-from pienerf.cameras import look_at_cameras
-from pienerf.data import Cameras
-from pienerf.density import Box, Capsule, SDFDensity, Sphere, Union
+from kernels.spatial_hash import SpatialHash
+from pienerf.nerf.cameras import Cameras, look_at_cameras
+from pienerf.nerf.datasets import load_nerf_dataset
+from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
+from pienerf.nerf.fitting import NerfFit, Progress, fit_nerf
+from pienerf.nerf.training import NerfCheckpoint, load_checkpoint, start_optimizer_import
 from pienerf.paths import cache_root
+from pienerf.render.deformed import LIGHT_DIRECTION
+from pienerf.sim.density import Box, Capsule, SDFDensity, Sphere, Union, sigmoid_density
 
 __all__ = [
     "GENERATOR_VERSION",
     "SCENES",
     "SCENE_SOFTNESS",
+    "MeshAlbedoField",
     "SceneMesh",
     "cloth",
     "jelly",
@@ -56,6 +62,7 @@ __all__ = [
     "scene_cameras",
     "scene_density",
     "scene_mesh",
+    "scene_nerf",
     "sculpture",
     "teapot",
 ]
@@ -69,9 +76,6 @@ the thinnest parts (the 1 cm cloth and 1.4 cm leaves) while resolving their surf
 
 CAMERA_ANGLE_X = 0.6911112070083618
 """Horizontal field of view of the rendered views, radians (that of the NeRF-synthetic scenes, about 39.6°)."""
-
-LIGHT_DIRECTION = (0.35, 1.0, 0.55)
-"""Direction toward the directional light of the renders (world, y up): from above, front-right."""
 
 _Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 """Rotation taking trimesh's z-axis solids (revolve, torus) to this module's y axis: (x, y, z) → (x, z, −y)."""
@@ -121,7 +125,7 @@ class _Part:
     solid: SDFDensity  # the same solid, analytically
 
 
-# Analytic solids beyond pienerf.density's boxes, capsules and spheres. Each is placed by a centre and a rotation
+# Analytic solids beyond pienerf.sim.density's boxes, capsules and spheres. Each is placed by a centre and a rotation
 # whose columns are its local axes in world coordinates; signed distances are in metres, negative inside.
 
 
@@ -586,7 +590,7 @@ def sculpture() -> SceneMesh:
 def scene_density(name: str, softness: float = SCENE_SOFTNESS, max_density: float = 50.0) -> Union:
     """The simulator's density field of the scene ``name``: the union of its parts' analytic solids.
 
-    ``σ(x) = σ_max · sigmoid(−min_i d_i(x) / τ)`` (see :mod:`pienerf.density`), the parts being the same solids
+    ``σ(x) = σ_max · sigmoid(−min_i d_i(x) / τ)`` (see :mod:`pienerf.sim.density`), the parts being the same solids
     the scene's mesh tessellates.
 
     Args:
@@ -605,7 +609,7 @@ def scene_cameras(name: str, views: int = 64, resolution: int = 200, seed: int =
     bounding sphere fills 90 % of the field of view :data:`CAMERA_ANGLE_X`.
 
     Returns:
-        :class:`~pienerf.data.Cameras` of ``views`` square images of ``resolution`` pixels.
+        :class:`~pienerf.nerf.Cameras` of ``views`` square images of ``resolution`` pixels.
     """
     if views < 1 or resolution < 1:
         raise ValueError(f"views and resolution must be positive, got views={views}, resolution={resolution}")
@@ -666,7 +670,7 @@ def render_scene(
         progress: show a progress bar when rendering more than 8 views.
 
     Returns:
-        The dataset folder, readable by :func:`pienerf.data.load_nerf_dataset`.
+        The dataset folder, readable by :func:`pienerf.nerf.datasets.load_nerf_dataset`.
     """
     if not (isinstance(supersample, int) and supersample >= 1):
         raise ValueError(f"supersample must be a positive integer (rays per pixel per axis), got {supersample!r}")
@@ -755,3 +759,162 @@ def _fine_rays(cameras: Cameras, view: int, k: int) -> tuple[torch.Tensor, torch
         torch.arange(k * cameras.height) + 0.5, torch.arange(k * cameras.width) + 0.5, indexing="ij"
     )
     return cameras.pixel_rays(view, cols.reshape(-1) / k, rows.reshape(-1) / k)
+
+
+_COLOR_RADIUS = 0.02
+"""Metres; points of :class:`MeshAlbedoField` farther than this from the surface are grey (they lie deep inside
+a solid, behind its opaque surface, or far outside it, where σ is negligible)."""
+
+
+class MeshAlbedoField:
+    """An embedded scene as a radiance field without training: σ from its analytic solids, colour the albedo of
+    the nearest mesh vertex (view-independent). Has the interface the renderer reads from
+    :class:`pienerf.nerf.NGPField`: ``aabb``, ``config``, ``density(x)``, ``field(x, d) → (σ, rgb)``
+    and its split ``radiance(x, encode_directions(d))``.
+
+    Args:
+        name: one of :data:`pienerf.scenes.SCENES`.
+        max_density: ``σ_max`` of the solids, per metre; 5000 makes a surface opaque within a 2 mm step.
+        softness: ``τ`` of the solids, metres; 0.5 mm keeps silhouettes within a march step of the mesh's.
+        padding: the box is the mesh's bounds grown by this, metres (room for the deformed body).
+        config: marching settings (``NGPConfig()`` by default: ~1000 steps per box diagonal).
+        max_edge: the scene mesh is subdivided until no edge is longer than this, metres, with colours
+            interpolated linearly; this refined mesh (:attr:`mesh`) gives the colours, and deforming its
+            vertices gives a ground truth that bends with the body (the rod's faces are 60 cm long as built).
+    """
+
+    def __init__(
+        self,
+        name: str,
+        max_density: float = 5000.0,
+        softness: float = 5e-4,
+        padding: float = 0.35,
+        config: NGPConfig | None = None,
+        max_edge: float = 0.01,
+    ):
+        device = backend.torch_device()
+        self.mesh = _refined(scene_mesh(name), max_edge)
+        self.solids = scene_density(name, softness=softness, max_density=max_density)
+        lo, hi = self.mesh.bounds
+        self.aabb = torch.stack([lo - padding, hi + padding]).float().to(device)
+        self.config = config or NGPConfig()
+        self.vertices = self.mesh.vertices.to(device).contiguous()
+        self.colors = self.mesh.colors.to(device)
+        self._vertex_hash = SpatialHash(self.vertices, cell_size=max_edge)
+
+    def _density_and_distance(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        distance = self.solids.signed_distance(x)
+        inside = ((x >= self.aabb[0]) & (x <= self.aabb[1])).all(dim=-1)
+        sigma = sigmoid_density(distance, self.solids.max_density, self.solids.softness)
+        return torch.where(inside, sigma, 0.0), distance
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        """σ ``[N]`` per metre at ``x [N, 3]`` (metres); 0 outside the box."""
+        return self._density_and_distance(x)[0]
+
+    def __call__(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(σ [N], rgb [N, 3])`` at points ``x [N, 3]``; the direction ``d`` is ignored (Lambertian albedo).
+
+        Only points within :data:`_COLOR_RADIUS` of the surface look up a vertex colour; the others are grey.
+        """
+        sigma, distance = self._density_and_distance(x)
+        rgb = torch.full((x.shape[0], 3), 0.5, device=x.device)
+        near = distance.abs() < _COLOR_RADIUS
+        if bool(near.any()):
+            nearest, _ = self._vertex_hash.knn(x[near].contiguous(), 1, max_radius=_COLOR_RADIUS)
+            found = nearest[:, 0] >= 0
+            rgb[near] = torch.where(found[:, None], self.colors[nearest[:, 0].long().clamp_min(0)], 0.5)
+        return sigma, rgb
+
+    def encode_directions(self, d: torch.Tensor) -> torch.Tensor:
+        """Directions as :meth:`radiance` takes them: unchanged (the albedo is view-independent)."""
+        return d
+
+    def radiance(self, x: torch.Tensor, encoded_directions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``self(x, d)`` for directions from :meth:`encode_directions` (the interface of :class:`NGPField`)."""
+        return self(x, encoded_directions)
+
+    def occupancy_grid(self, resolution: int = 128) -> OccupancyGrid:
+        """The field's occupancy grid, every cell evaluated once (threshold as :meth:`OccupancyGrid.for_field`)."""
+        threshold = self.config.grid_threshold / self.config.min_step(self.aabb.cpu())
+        grid = OccupancyGrid(self.aabb, resolution, decay=1.0, threshold=threshold).to(self.aabb.device)
+        grid.update(self.density, generator=torch.Generator(device=self.aabb.device).manual_seed(0))
+        return grid
+
+
+def _refined(mesh: SceneMesh, max_edge: float) -> SceneMesh:
+    """``mesh`` with every edge bisected until shorter than ``max_edge`` (metres), colours interpolated linearly."""
+    from trimesh import remesh
+
+    faces = mesh.faces.long().numpy()
+    vertices, new_faces, origin = remesh.subdivide_to_size(
+        mesh.vertices.double().numpy(), faces, max_edge, max_iter=12, return_index=True
+    )
+    vertices, new_faces = torch.from_numpy(vertices), torch.from_numpy(new_faces).long()
+    origin = torch.from_numpy(origin).long()
+    # Barycentric coordinates of each new face's corners in its original triangle.
+    a, b, c = (mesh.vertices.double()[torch.from_numpy(faces[:, i])][origin] for i in range(3))
+    e1, e2 = b - a, c - a
+    gram = torch.stack(
+        [
+            torch.stack([(e1 * e1).sum(-1), (e1 * e2).sum(-1)], -1),
+            torch.stack([(e1 * e2).sum(-1), (e2 * e2).sum(-1)], -1),
+        ],
+        -2,
+    )
+    colors = torch.zeros(vertices.shape[0], 3, dtype=torch.float64)
+    original_colors = mesh.colors.double()[torch.from_numpy(faces)][origin]  # [Q, 3 corners, 3]
+    for corner in range(3):
+        p = vertices[new_faces[:, corner]] - a
+        rhs = torch.stack([(p * e1).sum(-1), (p * e2).sum(-1)], -1)
+        b1, b2 = torch.linalg.solve(gram, rhs[..., None])[..., 0].unbind(-1)
+        weights = torch.stack([1.0 - b1 - b2, b1, b2], -1)
+        colors[new_faces[:, corner]] = (weights[..., None] * original_colors).sum(1)
+    return SceneMesh(
+        vertices=vertices.float(),
+        faces=new_faces.int(),
+        colors=colors.clamp(0.0, 1.0).float(),
+        name=mesh.name,
+        part=mesh.part[origin],
+        part_names=mesh.part_names,
+    )
+
+
+def scene_nerf(
+    scene: str, fit: NerfFit = NerfFit(), cache_dir: str | Path | None = None, progress: Progress | None = None
+) -> NerfCheckpoint:
+    """The NeRF of an embedded scene, trained on its rendered views, or loaded from the cache.
+
+    The views come from :func:`pienerf.scenes.render_scene` (``fit.views`` views of ``fit.resolution`` pixels,
+    cached under ``<cache>/scenes``); the checkpoint is ``ngp-<hash>.pt`` beside them. The scene box is the scene
+    mesh's bounds grown by ``fit.padding``.
+
+    Args:
+        scene: one of :data:`pienerf.scenes.SCENES`.
+        fit: the fitting settings.
+        cache_dir: cache root (default ``$PIE_CACHE_DIR``, else ``~/.cache/pie-physavatar``).
+        progress: called with ``(stage, fraction)`` while rendering and training.
+
+    Returns:
+        The trained field (eval mode, backend device) and its occupancy grid.
+    """
+    backend.init()
+    if progress is not None:
+        progress(f"rendering {fit.views} views of {scene}", 0.0)
+    folder = render_scene(
+        scene,
+        views=fit.views,
+        resolution=fit.resolution,
+        seed=fit.seed,
+        cache_dir=cache_root(cache_dir),
+        progress=False,
+    )
+    path = folder / f"ngp-{fit.digest(scene=scene)}.pt"
+    if path.is_file():
+        return load_checkpoint(path)
+    start_optimizer_import()  # a fit follows: its optimizer's import overlaps with the loading
+    dataset = load_nerf_dataset(folder, "train", background=(0.0, 0.0, 0.0))
+    lo, hi = scene_mesh(scene).bounds
+    torch.manual_seed(fit.seed)
+    field_ = NGPField(fit.ngp, torch.stack([lo - fit.padding, hi + fit.padding]))
+    return fit_nerf(field_, dataset, fit, path, progress, scene)

@@ -2,13 +2,13 @@
 controls, material changes, re-sampling, cuts and previews (PIE-NeRF §5). The viewer (``apps.demo``) and the
 scripted renders (``apps.render``) both drive a :class:`Simulation`.
 
-Previews come from the render backends of :mod:`pienerf.preview`: ``"mesh"`` and ``"particles"`` always, and
+Previews come from the render backends of :mod:`pienerf.render.previews`: ``"mesh"`` and ``"particles"`` always, and
 ``"nerf"``, a NeRF of the scene warped by the body (Eq. 19–21), added by :meth:`Simulation.add_nerf_render` from a
-trained field, e.g. :func:`pienerf.nerf_fit.scene_nerf` of an embedded scene.
+trained field, e.g. :func:`pienerf.scenes.scene_nerf` of an embedded scene.
 
-A scene may also be a trained NeRF checkpoint (``scene="path/to/ngp.pt"``, :func:`pienerf.train.save_checkpoint`):
-the body is then sampled from the NeRF's solid (:class:`pienerf.nerf_solid.NerfSceneDensity`), picking and the
-mesh preview use a blocky surface extracted from it (:func:`pienerf.nerf_solid.nerf_proxy_mesh`), and the
+A scene may also be a trained NeRF checkpoint (``scene="path/to/ngp.pt"``, :func:`pienerf.nerf.save_checkpoint`):
+the body is then sampled from the NeRF's solid (:class:`pienerf.nerf.solid.NerfSceneDensity`), picking and the
+mesh preview use a blocky surface extracted from it (:func:`pienerf.nerf.solid.nerf_proxy_mesh`), and the
 ``"nerf"`` mode is there from the start. Backends that hold the discretised body (a ``rebind(model)`` method) follow
 it through re-sampling and cuts.
 """
@@ -24,20 +24,33 @@ from pathlib import Path
 import torch
 
 from kernels import backend
-from pienerf.cut import CutPlane
-from pienerf.data import Cameras
-from pienerf.density import MeshDensity
-from pienerf.materials import MATERIAL_MODELS, Material
-from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.nerf_solid import NerfSceneDensity, nerf_proxy_mesh
-from pienerf.picking import DragConfig, DragController, Interaction, PickHit
-from pienerf.preview import Frame, MeshRenderBackend, NerfRenderBackend, ParticleRenderBackend, RenderBackend
-from pienerf.render import GroundPlane
+from pienerf.nerf.cameras import Cameras
+from pienerf.nerf.solid import NerfSceneDensity, nerf_proxy_mesh
+from pienerf.nerf.training import load_checkpoint
+from pienerf.render.deformed import GroundPlane
+from pienerf.render.previews import (
+    Frame,
+    MeshRenderBackend,
+    NerfRenderBackend,
+    ParticleRenderBackend,
+    RenderBackend,
+)
 from pienerf.reports import TimeBreakdown
-from pienerf.sampling import poisson_disk_sample
 from pienerf.scenes import SCENES, scene_density, scene_mesh
-from pienerf.solver import PlaneCollider, SolverConfig, SolverQGMLS, SphereCollider, StateQGMLS, StepReport
-from pienerf.train import load_checkpoint
+from pienerf.sim.cut import CutPlane
+from pienerf.sim.density import MeshDensity
+from pienerf.sim.materials import MATERIAL_MODELS, Material
+from pienerf.sim.model import DiscretizationConfig, QGMLSModel
+from pienerf.sim.picking import DragConfig, DragController, Interaction, PickHit
+from pienerf.sim.sampling import poisson_disk_sample
+from pienerf.sim.solver import (
+    PlaneCollider,
+    QGMLSState,
+    QGMLSStepReport,
+    SolverConfig,
+    SolverQGMLS,
+    SphereCollider,
+)
 
 __all__ = [
     "INTERACTIVE_DISCRETIZATION",
@@ -109,20 +122,20 @@ class SimulationConfig:
         particle_radius: r̄ of the Poisson-disk sampling (m); ``None`` → the scene's default, for a mesh path 1/40 of
             its largest extent.
         dt: time step h (s).
-        solver: gravity, damping and Newton settings (:class:`pienerf.solver.SolverConfig`).
-        discretization: kernels, order, Lloyd steps and cuts (:class:`pienerf.model.DiscretizationConfig`);
+        solver: gravity, damping and Newton settings (:class:`pienerf.sim.solver.SolverConfig`).
+        discretization: kernels, order, Lloyd steps and cuts (:class:`pienerf.sim.model.DiscretizationConfig`);
             ``None`` → :data:`INTERACTIVE_DISCRETIZATION` with the scene's kernel count.
-        drag: the drag spring (:class:`pienerf.picking.DragConfig`).
+        drag: the drag spring (:class:`pienerf.sim.picking.DragConfig`).
         floor: a ground plane collider at y = 0 (and the ground of the mesh preview).
         colliders: further colliders.
         default_pins: pin the scene's default pin boxes at reset.
         pin_stiffness: stiffness of each pin spring (N/m); ``None`` → Young's modulus × r̄ × 20.
         seed: seed of the particle sampling.
         nerf_solid_resolution: for a NeRF checkpoint scene, cells along the longest edge of the grid on which its
-            solid and proxy mesh are found (:class:`pienerf.nerf_solid.NerfSceneDensity`).
+            solid and proxy mesh are found (:class:`pienerf.nerf.solid.NerfSceneDensity`).
         mesh_edge_fraction: the ``"mesh"`` preview splits the mesh's edges until each is shorter than this fraction
             of the smallest kernel support radius (the length over which the Q-GMLS field bends), so a bent thin
-            part shows its bend (:func:`pienerf.mesh_refine.split_long_edges`); ``None`` renders the scene's mesh as
+            part shows its bend (:func:`pienerf.render.split_long_edges`); ``None`` renders the scene's mesh as
             it is. Picking uses the refined surface; :meth:`deformed_mesh_vertices` keeps the scene's vertices.
     """
 
@@ -173,8 +186,8 @@ class SimulationConfig:
     def create(cls, scene: str = "plant", **settings) -> SimulationConfig:
         """A config from flat keyword settings, each sent to the part that has the field.
 
-        Keys are this class's fields, :class:`~pienerf.solver.SolverConfig`'s, :class:`~pienerf.model.
-        DiscretizationConfig`'s, ``drag_`` + :class:`~pienerf.picking.DragConfig`'s (``drag_stiffness``) and
+        Keys are this class's fields, :class:`~pienerf.sim.solver.SolverConfig`'s, :class:`~pienerf.sim.model.
+        DiscretizationConfig`'s, ``drag_`` + :class:`~pienerf.sim.picking.DragConfig`'s (``drag_stiffness``) and
         ``lloyd_iterations`` (both Lloyd counts). A setting of ``None`` keeps the default; the kernel count defaults to
         the scene's.
 
@@ -215,7 +228,7 @@ def _field_names(cls) -> set[str]:
     return {f.name for f in fields(cls)}
 
 
-def project_state(source: QGMLSModel, target: QGMLSModel, state: StateQGMLS) -> StateQGMLS:
+def project_state(source: QGMLSModel, target: QGMLSModel, state: QGMLSState) -> QGMLSState:
     """Carry a state onto another discretisation of the same particles: q' minimises
     Σ_p V_p ‖Σ_s N'_s(X_p) q'_s − u_p‖², u_p the displacement of particle p under ``state`` (and alike for q̇)."""
     rows = torch.zeros(target.position.shape[0], target.shape_count, dtype=torch.float64, device=target.device)
@@ -226,7 +239,7 @@ def project_state(source: QGMLSModel, target: QGMLSModel, state: StateQGMLS) -> 
         source.particles.positions(state.qd) - source.position,
     ]
     solution = torch.linalg.lstsq(weight * rows, torch.cat([weight * m for m in moved], dim=1)).solution
-    return StateQGMLS(solution[:, :3].contiguous(), solution[:, 3:].contiguous(), state.time)
+    return QGMLSState(solution[:, :3].contiguous(), solution[:, 3:].contiguous(), state.time)
 
 
 class Simulation:
@@ -247,7 +260,7 @@ class Simulation:
         self._load_scene()
         self.render_backends: dict[str, RenderBackend] = {}
         self.breakdown = TimeBreakdown()
-        self.last_report = StepReport()
+        self.last_report = QGMLSStepReport()
         self.particle_radius = config.particle_radius or setup.particle_radius or self._extent / 40.0
         self.discretization = config.body_discretization()
         self._progress(progress, "sampling particles", 0.1)
@@ -362,7 +375,7 @@ class Simulation:
             for lo, hi in self.setup.pins:
                 self.interaction.pin_region(lo, hi, self.state.q)
 
-    def step(self, count: int = 1, colliders=None) -> StepReport:
+    def step(self, count: int = 1, colliders=None) -> QGMLSStepReport:
         """Advance ``count`` steps of ``config.dt`` under the current controls; returns the last report."""
         colliders = self.colliders if colliders is None else colliders
         for _ in range(count):
@@ -484,7 +497,7 @@ class Simulation:
 
     @property
     def material_models(self) -> tuple[str, ...]:
-        """The material models the solver knows (:data:`pienerf.materials.MATERIAL_MODELS`), for menus."""
+        """The material models the solver knows (:data:`pienerf.sim.materials.MATERIAL_MODELS`), for menus."""
         return tuple(MATERIAL_MODELS)
 
     # -- output --------------------------------------------------------------------------------
@@ -503,7 +516,7 @@ class Simulation:
         ground: bool | None = None,
         shadow_resolution: int = 64,
     ):
-        """Add a warped-NeRF render mode (:class:`pienerf.preview.NerfRenderBackend`) of a trained field.
+        """Add a warped-NeRF render mode (:class:`pienerf.render.previews.NerfRenderBackend`) of a trained field.
 
         Args:
             field, grid: the rest-space NeRF (:class:`pienerf.nerf.NGPField`) and its occupancy grid, in this

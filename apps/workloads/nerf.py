@@ -4,18 +4,18 @@
   against the torch reference (segmented ``cumsum`` + ``index_add_``, autograd). Compulsory DRAM
   traffic per sample: the forward reads σ, δ, t, c (24 B) and the backward reads them again and writes
   ∂σ, ∂c (24 + 16 B); per ray a few dozen bytes more.
-* ``nerf_train``: how fast :class:`pienerf.train.Trainer` learns and steps. Paper and large sizes train
+* ``nerf_train``: how fast :class:`pienerf.nerf.training.Trainer` learns and steps. Paper and large sizes train
   instant-NGP's configuration on the NeRF-synthetic lego at 800×800 (``../shared/data``): on the training views
   less every 8th (``held_out(8)``), scored on those held-out views over white (and on a few test views when the
   dataset has a test split; the lego here has none). The record's ``curve`` holds ``{seconds, steps, psnr, ssim}``
   (means over the scored views) at the training wall times :data:`CURVE_CHECKPOINTS_S` (evaluations excluded from
-  the clock, :func:`pienerf.train_curve.train_curve`), over a budget of :data:`TRAINING_BUDGET_S` that stops early
+  the clock, :func:`pienerf.nerf.train_curve`), over a budget of :data:`TRAINING_BUDGET_S` that stops early
   at :data:`STOP_PSNR`; with ``seconds_to_psnr30`` (interpolated between checkpoints), ``psnr_at_180s``,
   ``ssim_at_180s`` (the last checkpoint's, ``curve_stopped_early`` telling whether it came before the budget; the
   keys name the budget, ``psnr_at_2s`` at smoke size) and
   ``view_psnr`` (per scored view at the last checkpoint: the worst views). With an images folder (``apps.bench``'s
   ``--images``) it writes render | ground truth | error map PNGs of the scored views and a contact sheet
-  (:func:`pienerf.train_curve.write_error_images`), named in ``error_images``. ``startup_s``: seconds from the start
+  (:func:`pienerf.nerf.write_error_images`), named in ``error_images``. ``startup_s``: seconds from the start
   of a fresh process to the end of its first training step (:mod:`apps.nerf_startup`), run twice (``first`` may
   find cold kernel caches, ``second`` finds them warm) with the second's phases in ``breakdown``. After all this,
   the timed part is a few training steps (steps/s). Smoke size trains a tiny NeRF on a synthetic ball rendered in
@@ -38,11 +38,12 @@ from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from kernels.reference.volume_render import composite_torch
 from kernels.volume_render import composite
-from pienerf.data import Cameras, NerfDataset, load_nerf_dataset
-from pienerf.nerf import NGPConfig, NGPField
+from pienerf.nerf.cameras import Cameras
+from pienerf.nerf.datasets import NerfDataset, load_nerf_dataset
+from pienerf.nerf.field import NGPConfig, NGPField
+from pienerf.nerf.training import TrainConfig, Trainer
+from pienerf.nerf.training_curve import CurvePoint, TrainingCurve, train_curve, write_error_images
 from pienerf.paths import SHARED_DATA
-from pienerf.train import TrainConfig, Trainer
-from pienerf.train_curve import CurvePoint, TrainingCurve, train_curve, write_error_images
 
 # rays, mean samples per ray
 _RENDER_SIZES = {"smoke": (4096, 64), "paper": (1 << 14, 128), "large": (1 << 18, 128)}

@@ -2,10 +2,10 @@
 
 The reference swaps the Warp material-point kernel for its pure torch form (autograd Hessians,
 eigen-projection); the contractions and the dense Cholesky are shared torch code in both. On CUDA the step
-runs its device loop, one CUDA graph per step (:meth:`pienerf.solver.SolverQGMLS.step`); the reference's torch
+runs its device loop, one CUDA graph per step (:meth:`pienerf.sim.solver.SolverQGMLS.step`); the reference's torch
 material response reads the device from the host, so its step runs the host loop. The assembly is measured as that
 loop runs it too: replayed as a CUDA graph on CUDA, called on the CPU, with the Hessian's block products in the
-solver's default precision for the device (:attr:`pienerf.solver.SolverConfig.hessian_precision`: float32 on CUDA,
+solver's default precision for the device (:attr:`pienerf.sim.solver.SolverConfig.hessian_precision`: float32 on CUDA,
 float64 on the CPU); ``qgmls_assemble_f64`` forms them in float64 beside it.
 """
 
@@ -18,9 +18,9 @@ import torch
 from apps.workloads import Case, workload
 from kernels import backend
 from kernels.reference.hyperelastic import material_response_batched
-from pienerf.materials import Material
-from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.solver import ControlQGMLS, PointTargets, SolverConfig, SolverQGMLS
+from pienerf.sim.materials import Material
+from pienerf.sim.model import DiscretizationConfig, QGMLSModel
+from pienerf.sim.solver import PointTargets, QGMLSControl, SolverConfig, SolverQGMLS
 
 KERNELS = {"smoke": 16, "paper": 78, "large": 200}
 
@@ -91,7 +91,7 @@ def _step_case(size: str, config: SolverConfig, name: str) -> Case:
     reference = SolverQGMLS(model, Material(), dataclasses.replace(config, device_loop=False))
     reference.step_integrator.response = material_response_batched
     pin, tip = _pin_and_tip(model)
-    control = ControlQGMLS(springs=[
+    control = QGMLSControl(springs=[
         PointTargets(pin, pin.rest.clone(), 1e6),
         PointTargets(tip, tip.rest + torch.tensor([[0.0, 0.05, 0.0]], dtype=torch.float64, device=model.device), 1e3),
     ])
@@ -152,7 +152,7 @@ def bench_qgmls_step_reuse(device: str, size: str) -> Case:
         run = runs[name]
         run["target"] += lift
         springs = [PointTargets(pin, pin.rest.clone(), 1e6), PointTargets(tip, run["target"], 1e3)]
-        run["reports"].append(solvers[name].step(run["state"], run["state"], ControlQGMLS(springs=springs), 1 / 60))
+        run["reports"].append(solvers[name].step(run["state"], run["state"], QGMLSControl(springs=springs), 1 / 60))
         reports = runs["run"]["reports"]
         extra.update(reused_share=sum(r.factor_reused for r in reports) / max(len(reports), 1),
                      factor_refreshes=solvers["run"].factor_refreshes, steps=len(reports))

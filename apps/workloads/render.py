@@ -5,12 +5,12 @@
 * ``render_deformed``: frames per second of :class:`pienerf.render.DeformedRenderer` rendering a trained NeRF under
   a smooth random deformation (q with 2 cm Gaussian entries), at 64² (smoke), 200² on the CPU / 800² on CUDA
   (paper: lego-sized frames) and 400² / 1600² (large). The scene is the teapot's NeRF
-  (:func:`pienerf.nerf_fit.scene_nerf`, the default fit: 48 views of 64², 1000 steps, fitted the first time,
+  (:func:`pienerf.scenes.scene_nerf`, the default fit: 48 views of 64², 1000 steps, fitted the first time,
   then cached; at smoke size a short fit of 12 views of 32² and 100 steps, whose NeRF is fuzzier but renders the
   same teapot) with the teapot's 3 cm grid body and 24 kernels; at paper size
   on CUDA, when ``../shared/data/nerf_synthetic_lego`` exists beside the repository, the lego's NeRF
-  (:func:`pienerf.nerf_fit.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
-  solid the NeRF shows (:class:`pienerf.nerf_solid.NerfSceneDensity`) and 32 kernels, as the lego scenario,
+  (:func:`pienerf.nerf.fitting.dataset_nerf`, default fit) with a body Poisson-disk sampled (4 cm) from the
+  solid the NeRF shows (:class:`pienerf.nerf.solid.NerfSceneDensity`) and 32 kernels, as the lego scenario,
   seen from 4.2 m. A trained NeRF matters: early ray termination only saves samples behind real opacity. Timed:
   the frame state (deformed IPs, forward-warped occupancy) and the rounds of march, nearest IPs, warp, NeRF queries
   and compositing. Recorded besides: ``samples_marched``, ``samples_queried`` and ``rounds`` of a frame, and
@@ -36,14 +36,14 @@ from kernels.reference.warp_rays import warp_to_rest_torch
 from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import march_rays
 from kernels.warp_rays import warp_to_rest
-from pienerf.cameras import orbit_cameras
-from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.nerf_fit import NerfFit, dataset_nerf, scene_nerf
-from pienerf.nerf_solid import NerfSceneDensity
+from pienerf.nerf.cameras import orbit_cameras
+from pienerf.nerf.fitting import NerfFit, dataset_nerf
+from pienerf.nerf.solid import NerfSceneDensity
 from pienerf.paths import SHARED_DATA
-from pienerf.render import DeformedRenderer
-from pienerf.sampling import grid_sample, poisson_disk_sample
-from pienerf.scenes import scene_cameras, scene_density
+from pienerf.render.deformed import DeformedRenderer
+from pienerf.scenes import scene_cameras, scene_density, scene_nerf
+from pienerf.sim.model import DiscretizationConfig, QGMLSModel
+from pienerf.sim.sampling import grid_sample, poisson_disk_sample
 
 _LEGO = SHARED_DATA / "nerf_synthetic_lego"
 _WARP_SAMPLES = {"smoke": 1 << 16, "paper": 1 << 20, "large": 1 << 23}

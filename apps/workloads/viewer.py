@@ -4,7 +4,7 @@
 640×480), what
 :mod:`apps.demo` does each frame in its default mode. ``viewer_frame_nerf``: the same with the warped-NeRF mode
 (quadratic ray warping of the plant's NeRF, fitted on first use and cached, see
-:func:`pienerf.nerf_fit.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
+:func:`pienerf.scenes.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
 Throughput is frames per second of step + render; the record also gives the median step and the median render
 (``step_median_s``, ``render_median_s``) of the timed frames, since the two scale differently with the size.
 """
@@ -17,8 +17,9 @@ import time
 
 from apps.workloads import Case, workload
 from kernels import backend
-from pienerf.cameras import orbit_cameras
-from pienerf.nerf_fit import NerfFit, scene_nerf
+from pienerf.nerf.cameras import orbit_cameras
+from pienerf.nerf.fitting import NerfFit
+from pienerf.scenes import scene_nerf
 from pienerf.session import Simulation, SimulationConfig
 
 _SIZE = {"smoke": (160, 120), "paper": (320, 240), "large": (640, 480)}

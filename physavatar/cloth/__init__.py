@@ -68,7 +68,7 @@ from physavatar.cloth.contact import friction_potential
 from physavatar.cloth.newton_loop import PHASES
 from physavatar.cloth.newton_system import DENSE_MAX_DOFS
 from physavatar.cloth.potential import ClothEnergies, barrier_stiffness, bending_stiffness, lumped_masses
-from physavatar.cloth.solver import SENSITIVITY_PARAMETERS, ClothControl, ClothState, SolverCloth, StepStats
+from physavatar.cloth.solver import SENSITIVITY_PARAMETERS, ClothControl, ClothState, ClothStepReport, SolverCloth
 
 __all__ = [
     "ClothConfig",
@@ -82,7 +82,7 @@ __all__ = [
     "SENSITIVITY_PARAMETERS",
     "STIFFNESS_RANGE",
     "SolverCloth",
-    "StepStats",
+    "ClothStepReport",
     "barrier_stiffness",
     "bending_stiffness",
     "friction_potential",

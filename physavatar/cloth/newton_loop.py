@@ -25,7 +25,7 @@ __all__ = ["PHASES", "AssembledSystem", "LoopRead", "NewtonLoop", "PhaseTimer"]
 
 F64 = torch.float64
 PHASES = ("broad_phase", "ccd", "assemble", "solve", "line_search", "friction")
-"""The phases of a step that :class:`PhaseTimer` charges time to (:attr:`physavatar.cloth.StepStats.time`)."""
+"""The phases of a step that :class:`PhaseTimer` charges time to (:attr:`physavatar.cloth.ClothStepReport.time`)."""
 
 
 class PhaseTimer:

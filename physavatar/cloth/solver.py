@@ -24,7 +24,7 @@ from physavatar.cloth.newton_loop import NewtonLoop, PhaseTimer
 from physavatar.cloth.newton_system import LinearSolver, NewtonElement, NewtonMatrices
 from physavatar.cloth.potential import ClothEnergies, IncrementalPotential, StepContext
 
-__all__ = ["SENSITIVITY_PARAMETERS", "ClothControl", "ClothState", "SolverCloth", "StepStats"]
+__all__ = ["SENSITIVITY_PARAMETERS", "ClothControl", "ClothState", "SolverCloth", "ClothStepReport"]
 
 F64 = torch.float64
 SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
@@ -63,7 +63,7 @@ class ClothControl:
 
 
 @dataclass
-class StepStats:
+class ClothStepReport:
     """What one step did.
 
     Attributes:
@@ -188,7 +188,7 @@ class SolverCloth:
 
     # -- one step ---------------------------------------------------------------------------------------------
 
-    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+    def step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> ClothStepReport:
         """Advance the garment by ``dt`` seconds (one implicit Euler step of the incremental potential).
 
         Args:
@@ -200,7 +200,7 @@ class SolverCloth:
             dt: step size, s (paper: 0.04).
 
         Returns:
-            :class:`StepStats`.
+            :class:`ClothStepReport`.
 
         Raises:
             ValueError: malformed inputs (``state_out`` included), a static solve without boundary vertices, or a
@@ -251,7 +251,7 @@ class SolverCloth:
             self._step_buffers = buf
         return buf
 
-    def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> StepStats:
+    def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> ClothStepReport:
         cfg = self.config
         X, target, ctx = self._context(state_in, control, dt, state_out)
         v, kinematic = self.vertex_count, ctx.kinematic
@@ -334,7 +334,7 @@ class SolverCloth:
         # the pairs whose boxes at X lie within d̂ (the cover holds them all: X is on the last sweep)
         near = self.contact.sweep_masks(X, buf.zero, cover)
         d_body, d_self, contacts = self.contact.min_distances(X, cover.pairs, near)
-        return StepStats(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
+        return ClothStepReport(iterations, converged, d_body, d_self, contacts, timer.totals(), searches, stalled)
 
     # -- parameter sensitivities ------------------------------------------------------------------------------
 

@@ -19,12 +19,13 @@ import numpy as np
 
 from kernels import backend
 from kernels.hashgrid import HashGridConfig
-from pienerf.nerf import NGPConfig
-from pienerf.nerf_fit import NerfFit, scene_nerf
-from pienerf.preview import Frame, RefinementSchedule, RenderBackend
-from pienerf.scenes import SCENES
+from pienerf.nerf.field import NGPConfig
+from pienerf.nerf.fitting import NerfFit
+from pienerf.nerf.training import TrainConfig, load_checkpoint
+from pienerf.render.previews import Frame, RenderBackend
+from pienerf.render.refinement import RefinementSchedule
+from pienerf.scenes import SCENES, scene_nerf
 from pienerf.session import Simulation
-from pienerf.train import TrainConfig, load_checkpoint
 
 __all__ = [
     "CONTROL_RANGES",
@@ -74,7 +75,7 @@ def si_text(value: float, unit: str) -> str:
 
 
 class NerfSchedules:
-    """The NeRF view's refinement schedules (:class:`pienerf.preview.RefinementSchedule`), one per client (a browser
+    """The NeRF view's refinement schedules (:class:`pienerf.render.RefinementSchedule`), one per client (a browser
     tab), all under one frame budget; thread-safe, as a viewer's server threads drop clients while the loop renders.
 
     Args:
@@ -177,15 +178,15 @@ def _fit_in_child(scene: str, fit, cache_dir: str | None, device: str, messages)
 
 
 class NerfJob:
-    """The fit of an embedded scene's NeRF (:func:`pienerf.nerf_fit.scene_nerf`) in a separate process.
+    """The fit of an embedded scene's NeRF (:func:`pienerf.scenes.scene_nerf`) in a separate process.
 
     The process writes the checkpoint to the scene cache, where :func:`load_nerf` then finds it. :meth:`poll`
     never blocks.
 
     Args:
         scene: one of :data:`pienerf.scenes.SCENES`.
-        fit: the fitting settings (default :class:`pienerf.nerf_fit.NerfFit`).
-        cache_dir: the cache root (as :func:`pienerf.nerf_fit.scene_nerf`).
+        fit: the fitting settings (default :class:`pienerf.nerf.fitting.NerfFit`).
+        cache_dir: the cache root (as :func:`pienerf.scenes.scene_nerf`).
         device: where the process fits (default: this process's device).
 
     Attributes:

@@ -40,8 +40,7 @@ from meshcat.commands import SetObject, SetProperty, SetTransform
 from meshcat.path import Path
 from PIL import Image
 
-from pienerf.cameras import pinhole_camera
-from pienerf.data import Cameras
+from pienerf.nerf.cameras import Cameras, pinhole_camera
 from pienerf.viewer.loop import (
     CONTROL_RANGES,
     RENDER_MODES,
@@ -121,7 +120,7 @@ class MeshcatViewer:
         nerf_height: height in pixels of the NeRF images rendered for each tab (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
         frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
-            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`); later through
+            render's resolution adapts to hold it (:class:`pienerf.render.RefinementSchedule`); later through
             :attr:`nerf_schedules` (:class:`pienerf.viewer.loop.NerfSchedules`).
     """
 

@@ -7,7 +7,7 @@ The press of a mouse drag picks a material point and the pointer, on the camera-
 drag target until release. A click picks too; a further click moves the target onto that ray at the picked depth,
 and the gizmo at the target moves it in 3-D. In the ``"nerf"`` render mode each client gets the warped NeRF
 rendered from its own camera as the page's background image with its depth, while things move as coarse as the
-frame budget asks, refined once still (:class:`pienerf.preview.RefinementSchedule`).
+frame budget asks, refined once still (:class:`pienerf.render.RefinementSchedule`).
 
 Every event becomes a command of the :class:`pienerf.viewer.loop.DemoApp`; this module holds no simulation logic.
 Every value from the page is range-checked as it arrives (:func:`pienerf.viewer.loop.control_value`); a bad one is
@@ -31,7 +31,7 @@ import time
 import numpy as np
 import torch
 
-from pienerf.cameras import viser_cameras
+from pienerf.nerf.cameras import viser_cameras
 from pienerf.viewer.loop import (
     CONTROL_RANGES,
     RENDER_MODES,
@@ -100,7 +100,7 @@ class ViserViewer:
         nerf_height: height in pixels of the NeRF images rendered for each client (width from its aspect).
         background: colour behind the NeRF render, RGB in [0, 1].
         frame_budget: seconds a frame of the NeRF mode may take while things move, step and render together; the
-            render's resolution adapts to hold it (:class:`pienerf.preview.RefinementSchedule`); later through
+            render's resolution adapts to hold it (:class:`pienerf.render.RefinementSchedule`); later through
             :attr:`nerf_schedules` (:class:`pienerf.viewer.loop.NerfSchedules`).
     """
 

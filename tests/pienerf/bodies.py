@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import torch
 
-from pienerf.model import QGMLSModel
-from pienerf.solver import PointTargets
+from pienerf.sim.model import QGMLSModel
+from pienerf.sim.solver import PointTargets
 
 __all__ = [
     "cantilever_tip_deflection",

@@ -6,10 +6,10 @@ import pytest
 import torch
 
 from kernels import backend
-from pienerf.materials import Material
 from pienerf.reports import TimeBreakdown, VolumeHistory, plot_time_breakdown, plot_volume_bars
-from pienerf.solver import ControlQGMLS, SolverConfig, SolverQGMLS
-from tests.pienerf.test_solver import box_model
+from pienerf.sim.materials import Material
+from pienerf.sim.solver import QGMLSControl, SolverConfig, SolverQGMLS
+from tests.pienerf.sim.test_solver import box_model
 
 
 def test_time_breakdown_and_volume_reports_are_written(device, tmp_path):
@@ -18,7 +18,7 @@ def test_time_breakdown_and_volume_reports_are_written(device, tmp_path):
     state, breakdown = solver.rest_state(), TimeBreakdown()
     history = VolumeHistory(rest_volume=float(model.volume.sum()))
     for i in range(3):
-        breakdown.add(solver.step(state, state, ControlQGMLS(), 1e-2))
+        breakdown.add(solver.step(state, state, QGMLSControl(), 1e-2))
         history.add(f"step {i}", float(model.deformed_volume(state.q)))
     breakdown.add_phase("warping", 0.001)
     assert breakdown.steps == 3 and breakdown.newton_iterations >= 3

@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 import torch
 
-from pienerf.picking import DragConfig
 from pienerf.scenario import (
     ScenarioError,
     keyframe,
@@ -19,6 +18,7 @@ from pienerf.scenario import (
     volume_sample_frames,
 )
 from pienerf.session import INTERACTIVE_DISCRETIZATION, INTERACTIVE_SOLVER, SCENE_SETUPS, SimulationConfig
+from pienerf.sim.picking import DragConfig
 
 
 def test_create_sends_each_flat_setting_to_its_part():

@@ -7,7 +7,7 @@ import torch
 from kernels import backend
 from kernels.raycast import MeshBVH
 from pienerf import scenes
-from pienerf.data import load_nerf_dataset
+from pienerf.nerf.datasets import load_nerf_dataset
 
 VIEWS, RESOLUTION = 8, 32
 

@@ -15,7 +15,7 @@ import torch
 import physavatar.result_files as result_files
 import physavatar.simulate as simulate_module
 from apps import avatar
-from physavatar.cloth import SolverCloth, StepStats
+from physavatar.cloth import ClothStepReport, SolverCloth
 from physavatar.simulate import SimulationResult, render_video, write_meshes, write_npz, write_stats_json
 from pienerf.output_files import atomic_path
 
@@ -29,7 +29,7 @@ def _result(frames: int = 3) -> SimulationResult:
     cloth = torch.tensor([[0.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1.0]], dtype=torch.float64)
     body = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, 0.5, 0.0], [0.0, 0.0, 0.5]], dtype=torch.float64)
     shift = torch.arange(frames + 1, dtype=torch.float64)[:, None, None] * torch.tensor([0.01, 0.0, 0.0])
-    step = StepStats(
+    step = ClothStepReport(
         newton_iterations=3, converged=True, min_distance_body=0.01, min_distance_self=math.inf, contacts=0
     )
     return SimulationResult(

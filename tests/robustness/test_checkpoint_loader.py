@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from kernels.hashgrid import HashGridConfig
-from pienerf.nerf import NGPConfig, NGPField, OccupancyGrid
-from pienerf.train import TrainConfig, load_checkpoint, save_checkpoint
+from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
+from pienerf.nerf.training import TrainConfig, load_checkpoint, save_checkpoint
 
 TINY = NGPConfig(
     hashgrid=HashGridConfig(levels=2, features=2, log2_table_size=6, base_resolution=4, max_resolution=8),

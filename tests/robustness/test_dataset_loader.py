@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pienerf.data import MAX_IMAGE_PIXELS, NerfDataset, load_nerf_dataset
+from pienerf.nerf.datasets import MAX_IMAGE_PIXELS, NerfDataset, load_nerf_dataset
 
 ANGLE_X = 0.6911112070083618
 

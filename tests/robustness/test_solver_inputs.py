@@ -6,13 +6,13 @@ import pytest
 import torch
 
 from kernels import backend
-from pienerf.materials import Material
-from pienerf.model import DiscretizationConfig, QGMLSModel
-from pienerf.solver import (
-    ControlQGMLS,
+from pienerf.sim.materials import Material
+from pienerf.sim.model import DiscretizationConfig, QGMLSModel
+from pienerf.sim.solver import (
     PlaneCollider,
     PointForces,
     PointTargets,
+    QGMLSControl,
     SolverConfig,
     SolverQGMLS,
     SphereCollider,
@@ -48,7 +48,7 @@ def _ends(model: QGMLSModel):
 def test_an_ordinary_step_converges(device):
     solver = _solver()
     state = solver.rest_state()
-    report = solver.step(state, state, ControlQGMLS(), 1e-2)
+    report = solver.step(state, state, QGMLSControl(), 1e-2)
     assert report.converged and not report.line_search_failed and report.line_search_failure == ""
 
 
@@ -60,7 +60,7 @@ def test_a_huge_point_force_reports_a_failed_line_search(device):
     _, tip = _ends(model)
     force = torch.zeros(tip.index.shape[0], 3, dtype=torch.float64, device=model.device)
     force[:, 1] = -1e20
-    report = solver.step(state, state, ControlQGMLS(forces=[PointForces(tip, force)]), 1e-2)
+    report = solver.step(state, state, QGMLSControl(forces=[PointForces(tip, force)]), 1e-2)
     assert report.line_search_failed and report.line_search_failure == "inversion"
     assert not report.converged
     assert report.min_det > 0  # the body stays uninverted, and the report says why it did not move
@@ -72,7 +72,7 @@ def test_arap_under_enormous_gravity_reports_no_convergence(device):
     config = SolverConfig(gravity=(0, -1e12, 0), newton_iterations=1)
     solver = SolverQGMLS(_model(), Material(model="arap"), config)
     state = solver.rest_state()
-    report = solver.step(state, state, ControlQGMLS(colliders=[PlaneCollider()]), 1e-2)
+    report = solver.step(state, state, QGMLSControl(colliders=[PlaneCollider()]), 1e-2)
     assert not report.converged
     assert report.last_update > 1e3 * config.newton_tolerance
 
@@ -92,7 +92,7 @@ def test_non_finite_inputs_are_refused_naming_the_input(device, where, bad):
         force[-1, 2] = bad
     else:
         getattr(state, where)[0, 0] = bad
-    control = ControlQGMLS(springs=[PointTargets(pin, target, 1e4)], forces=[PointForces(tip, force)])
+    control = QGMLSControl(springs=[PointTargets(pin, target, 1e4)], forces=[PointForces(tip, force)])
     name = {"target": r"springs\[0\] target", "force": r"forces\[0\] force", "q": "state q", "qd": "state qd"}[where]
     with pytest.raises(ValueError, match=name + " holds NaN or inf"):
         solver.step(state, state, control, 1e-2)
@@ -103,7 +103,7 @@ def test_bad_dt_is_refused(device, dt):
     solver = _solver()
     state = solver.rest_state()
     with pytest.raises(ValueError, match="dt must be a finite positive number"):
-        solver.step(state, state, ControlQGMLS(), dt)
+        solver.step(state, state, QGMLSControl(), dt)
 
 
 @pytest.mark.parametrize("stiffness", [math.inf, -1.0, math.nan])
@@ -112,7 +112,7 @@ def test_bad_spring_stiffness_is_a_clear_error(device, stiffness):
     solver = _solver()
     state = solver.rest_state()
     pin, _ = _ends(model)
-    control = ControlQGMLS(springs=[PointTargets(pin, pin.rest.clone(), stiffness)])
+    control = QGMLSControl(springs=[PointTargets(pin, pin.rest.clone(), stiffness)])
     with pytest.raises(ValueError, match=r"springs\[0\] stiffness must be a finite number >= 0"):
         solver.step(state, state, control, 1e-2)
     with pytest.raises(ValueError, match=r"springs\[0\] stiffness"):
@@ -125,6 +125,6 @@ def test_mis_shaped_targets_and_colliders_are_refused(device):
     state = solver.rest_state()
     pin, _ = _ends(model)
     with pytest.raises(ValueError, match=r"springs\[0\] target must be"):
-        solver.step(state, state, ControlQGMLS(springs=[PointTargets(pin, pin.rest[:1].clone(), 1e3)]), 1e-2)
+        solver.step(state, state, QGMLSControl(springs=[PointTargets(pin, pin.rest[:1].clone(), 1e3)]), 1e-2)
     with pytest.raises(ValueError, match=r"colliders\[0\] must have finite coordinates"):
-        solver.step(state, state, ControlQGMLS(colliders=[SphereCollider((0.0, math.nan, 0.0), 0.1)]), 1e-2)
+        solver.step(state, state, QGMLSControl(colliders=[SphereCollider((0.0, math.nan, 0.0), 0.1)]), 1e-2)

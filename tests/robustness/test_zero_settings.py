@@ -5,11 +5,11 @@ from __future__ import annotations
 import pytest
 import torch
 
-from pienerf.model import DiscretizationConfig
-from pienerf.nerf import NGPConfig, NGPField, OccupancyGrid, render_rays
-from pienerf.picking import DragConfig
+from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid, render_rays
 from pienerf.session import SimulationConfig
-from pienerf.solver import SolverConfig
+from pienerf.sim.model import DiscretizationConfig
+from pienerf.sim.picking import DragConfig
+from pienerf.sim.solver import SolverConfig
 
 
 @pytest.mark.parametrize(
