@@ -3,7 +3,7 @@ import math
 import pytest
 import torch
 
-import pienerf.sim.solver as solver_module
+import pienerf.sim.solver.solver as solver_module
 from kernels import backend
 from pienerf.sim.materials import Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel

@@ -23,224 +23,24 @@ import functools
 import math
 import time
 from collections import OrderedDict
-from dataclasses import dataclass, field
 
 import torch
 
 from kernels import backend
 from kernels.ip_integrate import DENSE_ASSEMBLY_RATIO, IPIntegrator
 from pienerf.sim.materials import Material
-from pienerf.sim.model import PointHandle, QGMLSModel
+from pienerf.sim.model import QGMLSModel
+from pienerf.sim.solver.config import SolverConfig
+from pienerf.sim.solver.state import (
+    PlaneCollider,
+    PointTargets,
+    QGMLSControl,
+    QGMLSState,
+    QGMLSStepReport,
+    SphereCollider,
+)
 
-__all__ = [
-    "QGMLSControl",
-    "PlaneCollider",
-    "PointForces",
-    "PointTargets",
-    "SolverConfig",
-    "SolverQGMLS",
-    "SphereCollider",
-    "QGMLSState",
-    "QGMLSStepReport",
-]
-
-
-@dataclass(frozen=True)
-class SolverConfig:
-    """Solver settings.
-
-    Attributes:
-        gravity: acceleration of gravity (m/s²).
-        rayleigh_alpha: mass-proportional damping α (1/s).
-        rayleigh_beta: stiffness-proportional damping β (s).
-        newton_iterations: most Newton iterations per step.
-        hessian_updates: how many of a step's Newton iterations assemble and factor a fresh Hessian;
-            later iterations reuse the last Cholesky factor with fresh gradients (modified Newton:
-            linear instead of quadratic convergence, each iteration far cheaper). ``None``: all.
-        newton_tolerance: stop when the largest displacement update at the integrator points
-            (|J Δq|, m) is below this.
-        line_search_steps: most halvings of a Newton step.
-        contact_stiffness: penalty modulus of colliders (Pa); a particle of volume V gets a spring of
-            stiffness contact_stiffness · V^(1/3) (N/m). ``None`` → 100 × Young's modulus.
-        project_hessian: make every quadrature point's Hessian PSD (kernels.hyperelastic).
-        device_loop: run each step's Newton loop with no host read inside it (:meth:`SolverQGMLS.step`), captured
-            once per set of controls and replayed as one CUDA graph. ``None``: on CUDA only (on the CPU, where a
-            launch costs little, the loop that stops early is faster); ``True`` on the CPU runs the same loop
-            uncaptured.
-        line_search_batch: trial steps (1, 1/2, 1/4, …) the device loop evaluates per Newton iteration; a step
-            that needs more halvings is redone by the host loop.
-        factor_reuse: later steps that may reuse a step's Cholesky factor instead of assembling and factoring
-            their own (modified Newton across steps, device loop only): 0 never. A step that reuses it and then
-            contracts slowly (its last Newton update above 2^-(iterations−1) of its first), halves a step, or
-            (with ``newton_tolerance`` > 0) does not converge is taken again with its own factor, which is kept
-            instead; a change of controls, dt or material drops it too. Every direction is a descent direction
-            (the factor is of an SPD matrix) and the line search keeps the never-invert guarantee, so a step that
-            reuses the factor ends where Newton's would, to the tolerance.
-        hessian_precision: ``"auto"``, ``"float64"`` or ``"float32"``: the precision of the elastic Hessian's block
-            products in steps (:class:`kernels.ip_integrate.IPIntegrator`'s ``product_dtype``); ``"auto"`` is float32
-            on CUDA and float64 on the CPU (:meth:`hessian_product_dtype`). ``"float32"`` leaves the Hessian float64
-            with a relative error of 1e-7 or less, the energy and gradient (and so Newton's fixed point) exact, and
-            suits dynamic steps, whose mass term keeps the Newton matrix well away from singular. Where it does not
-            (a force no body can bear), a Newton matrix whose factorisation fails is assembled again with float64
-            products before the host loop shifts it, so such a step ends as a float64 one does.
-            :meth:`SolverQGMLS.solve_static` (no mass term: the rigid modes, ~1e-13 of the largest eigenvalue, sit
-            below float32 round-off) always assembles in float64. On an H100 the 78-kernel box assembled in 0.86 ms
-            with float32 products against 1.35 ms (CUDA graphs); on the CPU the float64 products cost little.
-    """
-
-    gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    rayleigh_alpha: float = 0.0
-    rayleigh_beta: float = 0.0
-    newton_iterations: int = 3
-    hessian_updates: int | None = None
-    newton_tolerance: float = 1e-8
-    line_search_steps: int = 20
-    contact_stiffness: float | None = None
-    project_hessian: bool = True
-    device_loop: bool | None = None
-    line_search_batch: int = 3
-    factor_reuse: int = 0
-    hessian_precision: str = "auto"
-
-    def __post_init__(self):
-        values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
-        if self.contact_stiffness is not None:
-            values.append(self.contact_stiffness)
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
-            raise ValueError(f"solver settings must be finite numbers, got {self}")
-        if self.rayleigh_alpha < 0 or self.rayleigh_beta < 0:
-            raise ValueError("Rayleigh damping coefficients must be >= 0")
-        if self.newton_iterations < 1 or self.line_search_steps < 1:
-            raise ValueError("newton_iterations and line_search_steps must be >= 1")
-        if self.contact_stiffness is not None and not self.contact_stiffness > 0:
-            raise ValueError(f"contact_stiffness must be > 0 Pa (or None for 100 × Young's modulus), got "
-                             f"{self.contact_stiffness!r}")
-        if self.line_search_batch < 1:
-            raise ValueError("line_search_batch must be >= 1")
-        if self.factor_reuse < 0:
-            raise ValueError(f"factor_reuse must be >= 0 steps, got {self.factor_reuse}")
-        if self.factor_reuse and self.rayleigh_beta:
-            raise ValueError("factor_reuse needs rayleigh_beta = 0: stiffness damping uses each step's own K(q_n)")
-        if self.hessian_updates is not None and self.hessian_updates < 1:
-            raise ValueError("hessian_updates must be >= 1 (or None for a fresh Hessian every iteration)")
-        if self.hessian_precision not in backend.PRECISIONS:
-            raise ValueError(f"hessian_precision must be one of {sorted(backend.PRECISIONS)}, got "
-                             f"{self.hessian_precision!r}")
-
-    def hessian_product_dtype(self, device: torch.device | str) -> torch.dtype:
-        """The torch dtype of ``hessian_precision`` for a model on ``device``
-        (:func:`kernels.backend.precision_dtype`)."""
-        return backend.precision_dtype(self.hessian_precision, device)
-
-
-@dataclass
-class QGMLSState:
-    """Generalized coordinates q and velocities q̇, both ``[nT, 3]`` float64 (Eq. 9 layout)."""
-
-    q: torch.Tensor
-    qd: torch.Tensor
-    time: float = 0.0
-
-    def copy_(self, other: QGMLSState) -> QGMLSState:
-        self.q.copy_(other.q)
-        self.qd.copy_(other.qd)
-        self.time = other.time
-        return self
-
-
-@dataclass
-class PointTargets:
-    """Zero-rest-length springs pulling material points to targets (pins and drags).
-
-    Attributes:
-        handle: the material points (:meth:`QGMLSModel.handle`).
-        target: ``[M, 3]`` world targets (m).
-        stiffness: spring stiffness per point (N/m).
-    """
-
-    handle: PointHandle
-    target: torch.Tensor
-    stiffness: float
-
-
-@dataclass
-class PointForces:
-    """Constant forces ``force [M, 3]`` (N) at material points (f_q = Jᵀ f)."""
-
-    handle: PointHandle
-    force: torch.Tensor
-
-
-@dataclass(frozen=True)
-class PlaneCollider:
-    """Half-space boundary: particles stay where n·(x − point) ≥ 0."""
-
-    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    normal: tuple[float, float, float] = (0.0, 1.0, 0.0)
-
-
-@dataclass(frozen=True)
-class SphereCollider:
-    """Solid sphere: particles stay outside."""
-
-    centre: tuple[float, float, float]
-    radius: float
-
-
-@dataclass
-class QGMLSControl:
-    """What acts on the body this step."""
-
-    springs: list[PointTargets] = field(default_factory=list)
-    forces: list[PointForces] = field(default_factory=list)
-    colliders: list[PlaneCollider | SphereCollider] = field(default_factory=list)
-
-
-@dataclass
-class QGMLSStepReport:
-    """Per-step statistics; times in seconds.
-
-    Attributes:
-        iterations: Newton iterations taken.
-        energy: incremental potential at the step's end (J).
-        last_update: largest |J Δq| of the last accepted update at the integrator points (m).
-        min_det: smallest det F over the quadrature points at the step's end.
-        line_search_halvings: halvings of Newton steps over the whole step.
-        converged: the last Newton update fell below ``newton_tolerance`` (or the Newton step was already at
-            round-off), with no failed line search; ``False`` when the iteration budget ran out first.
-        line_search_failure: why the last line search found no acceptable step, ``""`` when none failed:
-            ``"inversion"`` (every trial hit the never-invert bound, Ψ = +∞ for det F ≤ 0, down to the smallest
-            step), ``"no decrease"`` (finite trials, none decreasing the energy enough) or ``"not finite"``
-            (the Newton direction or the trial energies were NaN). The body then stays where the failed
-            iteration started: the step is not a solution of Eq. 2.
-        device_loop: the step ran as the device loop (:meth:`SolverQGMLS.step`); its phases are then not timed
-            apart, and ``time_device_loop`` holds the whole step.
-        factor_reused: the step reused an earlier step's Cholesky factor (``SolverConfig.factor_reuse``).
-    """
-
-    iterations: int = 0
-    energy: float = 0.0
-    last_update: float = 0.0
-    min_det: float = 1.0
-    line_search_halvings: int = 0
-    converged: bool = False
-    line_search_failure: str = ""
-    time_assembly: float = 0.0
-    time_solve: float = 0.0
-    time_other: float = 0.0
-    device_loop: bool = False
-    factor_reused: bool = False
-    time_device_loop: float = 0.0
-
-    @property
-    def time_step(self) -> float:
-        """Seconds the whole step took: the device loop's time when it ran as one, else its phases together."""
-        return self.time_device_loop if self.device_loop else self.time_assembly + self.time_solve + self.time_other
-
-    @property
-    def line_search_failed(self) -> bool:
-        """Whether a line search of this step could not move (see ``line_search_failure``)."""
-        return bool(self.line_search_failure)
+__all__ = ["SolverQGMLS"]
 
 
 class SolverQGMLS:
