@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
 
@@ -17,19 +18,34 @@ __all__ = ["TimeBreakdown", "VolumeHistory", "plot_time_breakdown", "plot_volume
 
 @dataclass
 class TimeBreakdown:
-    """Accumulated seconds per phase of the run (assembly, solve, other; warping where rendered; the device loop's
-    steps as a whole, :meth:`pienerf.sim.solver.SolverQGMLS.step`)."""
+    """Accumulated seconds per phase of the run: the steps' :attr:`STEP_PHASES`; warping and others where rendered
+    (:meth:`add_phase`); ``"device loop"`` for device-loop steps not timed by phase
+    (:meth:`pienerf.sim.solver.SolverQGMLS.step` with ``timed=False``), each charged as a whole.
 
-    seconds: dict[str, float] = field(default_factory=lambda: {"assembly": 0.0, "solve": 0.0, "other": 0.0})
+    The JSON (:meth:`to_dict`) keeps the earlier keys: a breakdown written before the line search was a phase of its
+    own has no ``"line search"`` (its line search is in ``"other"``); readers take a missing phase as 0.
+    """
+
+    STEP_PHASES: ClassVar[tuple[str, ...]] = ("assembly", "solve", "line search", "other")
+    """The phases of a solver step (``QGMLSStepReport.time_assembly``, ``time_solve``, ``time_line_search``,
+    ``time_other``)."""
+
+    seconds: dict[str, float] = field(default_factory=lambda: dict.fromkeys(TimeBreakdown.STEP_PHASES, 0.0))
     steps: int = 0
     newton_iterations: int = 0
 
     def add(self, report: QGMLSStepReport) -> None:
-        """Accumulate one :class:`QGMLSStepReport`."""
-        self.seconds["assembly"] += report.time_assembly
-        self.seconds["solve"] += report.time_solve
-        self.seconds["other"] += report.time_other
-        if report.device_loop:  # the phases ran as one graph, timed as a whole
+        """Accumulate one :class:`QGMLSStepReport`: its phases where timed (a timed device-loop step's time outside
+        its phases, the wall time less their sum, to ``"other"``), else its whole time to ``"device loop"``."""
+        if report.timed:
+            self.seconds["assembly"] += report.time_assembly
+            self.seconds["solve"] += report.time_solve
+            self.seconds["line search"] = self.seconds.get("line search", 0.0) + report.time_line_search
+            self.seconds["other"] += report.time_other
+            if report.device_loop:
+                phases = report.time_assembly + report.time_solve + report.time_line_search + report.time_other
+                self.seconds["other"] += max(report.time_device_loop - phases, 0.0)
+        else:  # the phases ran as one graph, timed as a whole
             self.add_phase("device loop", report.time_device_loop)
         self.steps += 1
         self.newton_iterations += report.iterations

@@ -25,7 +25,8 @@ def test_time_breakdown_and_volume_reports_are_written(device, tmp_path):
     assert sum(breakdown.fractions().values()) == pytest.approx(1.0)
     pie = plot_time_breakdown(breakdown, tmp_path / "breakdown.png")
     data = json.loads(pie.with_suffix(".json").read_text())
-    phases = {"assembly", "solve", "other", "warping"} | ({"device loop"} if model.device.type == "cuda" else set())
+    phases = {"assembly", "solve", "line search", "other", "warping"} | (
+        {"device loop"} if model.device.type == "cuda" else set())
     assert data["steps"] == 3 and set(data["fractions"]) == phases  # CUDA's device loop is timed as a whole
     assert iio.imread(pie).shape[2] in (3, 4)
     assert history.relative() == pytest.approx([1.0, 1.0, 1.0], abs=1e-9)  # free fall keeps the volume

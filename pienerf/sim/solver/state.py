@@ -99,8 +99,11 @@ class QGMLSStepReport:
             step), ``"no decrease"`` (finite trials, none decreasing the energy enough) or ``"not finite"``
             (the Newton direction or the trial energies were NaN). The body then stays where the failed
             iteration started: the step is not a solution of Eq. 2.
-        device_loop: the step ran as the device loop (:meth:`SolverQGMLS.step`); its phases are then not timed
-            apart, and ``time_device_loop`` holds the whole step.
+        time_assembly, time_solve, time_line_search, time_other: seconds of the step's phases: assembling the Newton
+            system (Eq. 18), factoring and solving it, the line search's trial energies, and the rest. A device-loop
+            step has them only where it was timed (``SolverQGMLS.step(..., timed=True)``), else zeros.
+        device_loop: the step ran as the device loop (:meth:`SolverQGMLS.step`); ``time_device_loop`` then holds the
+            whole step (its wall time, the phases' sum at most).
         factor_reused: the step reused an earlier step's Cholesky factor (``SolverConfig.factor_reuse``).
     """
 
@@ -113,6 +116,7 @@ class QGMLSStepReport:
     line_search_failure: str = ""
     time_assembly: float = 0.0
     time_solve: float = 0.0
+    time_line_search: float = 0.0
     time_other: float = 0.0
     device_loop: bool = False
     factor_reused: bool = False
@@ -121,7 +125,15 @@ class QGMLSStepReport:
     @property
     def time_step(self) -> float:
         """Seconds the whole step took: the device loop's time when it ran as one, else its phases together."""
-        return self.time_device_loop if self.device_loop else self.time_assembly + self.time_solve + self.time_other
+        if self.device_loop:
+            return self.time_device_loop
+        return self.time_assembly + self.time_solve + self.time_line_search + self.time_other
+
+    @property
+    def timed(self) -> bool:
+        """Whether the step's phases were timed (always for the host loop; for the device loop on request)."""
+        return not self.device_loop or (self.time_assembly + self.time_solve + self.time_line_search
+                                        + self.time_other) > 0
 
     @property
     def line_search_failed(self) -> bool:

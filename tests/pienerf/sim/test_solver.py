@@ -3,7 +3,6 @@ import math
 import pytest
 import torch
 
-import pienerf.sim.solver.solver as solver_module
 from kernels import backend
 from pienerf.sim.materials import Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
@@ -88,7 +87,7 @@ def test_released_drag_decays_with_damping(device):
     def mechanical_energy():
         kinetic = 0.5 * (state.qd * (solver.mass @ state.qd)).sum()
         elastic = solver.integrator.evaluate(state.q, gradient=False, hessian=False).energy
-        return (kinetic + elastic + solver._spring_terms([pin_springs], state.q, False)[0]).item()
+        return (kinetic + elastic + solver.potential.spring_terms([pin_springs], state.q, False)[0]).item()
 
     energies = [mechanical_energy()]
     for _ in range(30):
@@ -245,7 +244,7 @@ def test_modified_newton_reaches_the_same_step(device):
     torch.testing.assert_close(results[1], results[0], rtol=0, atol=1e-8)
 
 
-def test_contact_hessian_is_the_same_by_product_and_by_blocks(device, monkeypatch):
+def test_contact_hessian_is_the_same_by_product_and_by_blocks(device):
     """Both assemblies of Σ k Jᵀ n nᵀ J, the one product over shape rows and the per-point blocks, agree."""
     model = box_model(device, kernels=6)
     solver = SolverQGMLS(model, Material())
@@ -255,10 +254,9 @@ def test_contact_hessian_is_the_same_by_product_and_by_blocks(device, monkeypatc
     normal = torch.nn.functional.normalize(
         torch.randn(len(particles.index), 3, generator=generator, dtype=torch.float64), dim=1
     ).to(model.device)
-    monkeypatch.setattr(solver_module, "DENSE_ASSEMBLY_RATIO", math.inf)
-    by_product = solver._normal_point_hessian(particles.index, particles.value, stiffness, normal)
-    monkeypatch.setattr(solver_module, "DENSE_ASSEMBLY_RATIO", 0.0)
-    by_blocks = solver._normal_point_hessian(particles.index, particles.value, stiffness, normal)
+    potential = solver.potential
+    by_product = potential.normal_point_hessian(particles.index, particles.value, stiffness, normal, by_blocks=False)
+    by_blocks = potential.normal_point_hessian(particles.index, particles.value, stiffness, normal, by_blocks=True)
     torch.testing.assert_close(by_product, by_blocks, rtol=1e-12, atol=1e-12 * float(by_blocks.abs().max()))
 
 
@@ -310,7 +308,7 @@ def test_device_loop_takes_the_host_loops_step(device, config):
         _assert_same_step(*reports, *states)
         redone += not reports[1].device_loop
     assert device_solver.device_loop_redos == redone < 4
-    assert len(device_solver._device_loops) == 1  # new targets, stiffnesses, forces and placements: same graph
+    assert len(device_solver.device_loops) == 1  # new targets, stiffnesses, forces and placements: same graph
 
 
 def test_device_loop_hands_steps_it_cannot_take_to_the_host_loop(device):
@@ -343,9 +341,9 @@ def test_device_loops_follow_the_controls_and_the_material(device):
     pins = PointTargets(pin, pin.rest.clone(), 1e5)
     for springs in ([pins], [pins, PointTargets(tip, tip.rest.clone(), 1e3)], [pins]):
         solver.step(state, state, QGMLSControl(springs=springs), 1e-2)
-    assert len(solver._device_loops) == 2
+    assert len(solver.device_loops) == 2
     solver.set_material(Material(young_modulus=2e5))
-    assert len(solver._device_loops) == 0
+    assert len(solver.device_loops) == 0
     report = solver.step(state, state, QGMLSControl(springs=[pins]), 1e-2)
     assert report.device_loop and report.iterations >= 1
 
@@ -378,6 +376,65 @@ def test_kept_factor_reaches_newtons_steps_and_is_renewed_when_it_stops_serving(
 
 
 def test_a_step_report_times_the_whole_step_either_way():
-    host = QGMLSStepReport(time_assembly=0.25, time_solve=0.5, time_other=0.125)
-    assert host.time_step == 0.875, "the host loop's phases together"
-    assert QGMLSStepReport(device_loop=True, time_device_loop=0.3).time_step == 0.3, "the device loop as a whole"
+    host = QGMLSStepReport(time_assembly=0.25, time_solve=0.5, time_line_search=0.0625, time_other=0.125)
+    assert host.time_step == 0.9375, "the host loop's phases together"
+    assert host.timed
+    untimed = QGMLSStepReport(device_loop=True, time_device_loop=0.3)
+    assert untimed.time_step == 0.3 and not untimed.timed, "the device loop as a whole"
+
+
+@pytest.mark.parametrize("device_loop", [False, True], ids=["host loop", "device loop"])
+def test_a_pin_held_over_many_steps_costs_one_product_once(device, device_loop):
+    """The springs' Hessian k JᵀJ is formed once per handle object: a pin held and a drag moving its target over many
+    steps cost one JᵀJ each; a new handle (another set of points) costs one more."""
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(device_loop=device_loop))
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    tip = model.handle(model.position[model.position[:, 0].argmax()][None])
+    state = solver.rest_state()
+    for i in range(5):
+        lift = torch.tensor([[0.0, 0.01 * i, 0.0]], dtype=torch.float64, device=model.device)
+        springs = [PointTargets(pin, pin.rest.clone(), 1e5), PointTargets(tip, tip.rest + lift, 1e3 * (i + 1))]
+        report = solver.step(state, state, QGMLSControl(springs=springs), 1e-2)
+        assert report.device_loop == device_loop
+    assert solver.potential.jtj_products == 2
+    again = model.handle(model.position[model.position[:, 0] < 0.05])  # the same points, another handle
+    solver.step(state, state, QGMLSControl(springs=[PointTargets(again, again.rest.clone(), 1e5)]), 1e-2)
+    assert solver.potential.jtj_products == 3
+    assert len(solver.device_loops) == (2 if device_loop else 0)
+
+
+def test_a_timed_device_loop_step_reports_its_phases_and_the_same_step(device):
+    """``timed=True``: the device loop runs uncaptured with its phases timed; each phase takes time, together no more
+    than the step's wall time, and the step is the untimed one's to the bit. Untimed steps report no phases."""
+    model = box_model(backend.torch_device())
+    config = SolverConfig(device_loop=True, newton_iterations=3, rayleigh_alpha=1.0)
+    solvers = [SolverQGMLS(model, Material(young_modulus=5e4), config) for _ in range(2)]
+    states = [solver.rest_state() for solver in solvers]
+    pin = model.handle(model.position[model.position[:, 0] < 0.05])
+    control = QGMLSControl(springs=[PointTargets(pin, pin.rest.clone(), 1e5)], colliders=[PlaneCollider()])
+    for _ in range(3):
+        untimed, timed = (solver.step(state, state, control, 1e-2, timed=timed)
+                          for solver, state, timed in zip(solvers, states, (False, True), strict=True))
+        assert untimed.device_loop and timed.device_loop
+        assert torch.equal(states[1].q, states[0].q) and torch.equal(states[1].qd, states[0].qd)
+        assert _same_outcome(untimed, timed)
+        phases = (timed.time_assembly, timed.time_solve, timed.time_line_search, timed.time_other)
+        assert all(phase > 0 for phase in phases) and timed.timed
+        assert sum(phases) <= timed.time_device_loop == timed.time_step
+        assert (untimed.time_assembly, untimed.time_solve, untimed.time_line_search, untimed.time_other) == (0,) * 4
+        assert not untimed.timed and untimed.time_device_loop > 0
+
+
+def test_a_host_loop_step_times_its_line_search_apart(device):
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(young_modulus=5e4), SolverConfig(device_loop=False))
+    state = solver.rest_state()
+    report = solver.step(state, state, QGMLSControl(colliders=[PlaneCollider()]), 1e-2)
+    assert min(report.time_assembly, report.time_solve, report.time_line_search, report.time_other) > 0
+
+
+def _same_outcome(a: QGMLSStepReport, b: QGMLSStepReport) -> bool:
+    return all(getattr(a, name) == getattr(b, name) for name in (
+        "iterations", "energy", "last_update", "min_det", "line_search_halvings", "converged", "line_search_failure",
+        "device_loop", "factor_reused"))

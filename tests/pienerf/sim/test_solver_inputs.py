@@ -1,5 +1,7 @@
-"""The Q-GMLS solver says when a step fails and refuses inputs that are not finite."""
+"""The Q-GMLS solver says when a step fails and refuses inputs that are not finite, with the host loop and with the
+device loop alike (``SolverConfig.device_loop``; uncaptured on the CPU)."""
 
+import dataclasses
 import math
 
 import pytest
@@ -13,6 +15,8 @@ from pienerf.sim.solver import (
     PointForces,
     PointTargets,
     QGMLSControl,
+    QGMLSState,
+    QGMLSStepReport,
     SolverConfig,
     SolverQGMLS,
     SphereCollider,
@@ -45,31 +49,77 @@ def _ends(model: QGMLSModel):
     return model.handle(model.position[x < 0.05]), model.handle(model.position[x > 0.15])
 
 
-def test_an_ordinary_step_converges(device):
-    solver = _solver()
+LOOPS = pytest.mark.parametrize("device_loop", [False, True], ids=["host loop", "device loop"])
+"""Each test of a step's outcome runs with both Newton loops."""
+
+
+def _outcome(report: QGMLSStepReport) -> tuple:
+    """What a step's report says of its outcome (everything but its times and which loop took it)."""
+    return (report.iterations, report.energy, report.last_update, report.min_det, report.line_search_halvings,
+            report.converged, report.line_search_failure)
+
+
+def _both_loops(material: Material, config: SolverConfig, control: QGMLSControl, dt: float, steps: int = 1,
+                start: torch.Tensor | None = None) -> list[tuple[QGMLSStepReport, QGMLSState]]:
+    """The last report and the state after ``steps`` steps from rest (or from ``q = start``), with the host loop
+    and with the device loop."""
+    results = []
+    for device_loop in (False, True):
+        solver = _solver(material, dataclasses.replace(config, device_loop=device_loop))
+        state = solver.rest_state()
+        if start is not None:
+            state.q.copy_(start)
+        for _ in range(steps):
+            report = solver.step(state, state, control, dt)
+        results.append((report, state))
+    return results
+
+
+def _assert_same_outcome(results) -> QGMLSStepReport:
+    """Both loops' reports say the same (to the bit: the device loop hands the failing step to the host loop, and
+    the loops' arithmetic is the same where both take a step) and their states are equal."""
+    (host, host_state), (device, device_state) = results
+    assert _outcome(device) == _outcome(host)
+    assert torch.equal(device_state.q, host_state.q) and torch.equal(device_state.qd, host_state.qd)
+    return host
+
+
+@LOOPS
+def test_an_ordinary_step_converges(device, device_loop):
+    solver = _solver(config=SolverConfig(device_loop=device_loop))
     state = solver.rest_state()
     report = solver.step(state, state, QGMLSControl(), 1e-2)
     assert report.converged and not report.line_search_failed and report.line_search_failure == ""
 
 
-def test_a_huge_point_force_reports_a_failed_line_search(device):
+def test_a_huge_point_force_reports_an_inversion_from_either_loop(device):
     """1e20 N: every trial along the Newton step inverts a quadrature point down to the smallest step."""
     model = _model()
-    solver = _solver()
-    state = solver.rest_state()
     _, tip = _ends(model)
     force = torch.zeros(tip.index.shape[0], 3, dtype=torch.float64, device=model.device)
     force[:, 1] = -1e20
-    report = solver.step(state, state, QGMLSControl(forces=[PointForces(tip, force)]), 1e-2)
+    results = _both_loops(Material(), SolverConfig(), QGMLSControl(forces=[PointForces(tip, force)]), 1e-2)
+    report = _assert_same_outcome(results)
     assert report.line_search_failed and report.line_search_failure == "inversion"
     assert not report.converged
     assert report.min_det > 0  # the body stays uninverted, and the report says why it did not move
 
 
-def test_arap_under_enormous_gravity_reports_no_convergence(device):
+def test_a_stiff_body_under_huge_gravity_reports_no_decrease_from_either_loop(device):
+    """E = 1e13 Pa at ν = 0.499 stepped 1 s at a time under 1e6 m/s²: the Newton direction is so ill-conditioned
+    that no step along it lowers the energy (the trials stay finite), in every step."""
+    config = SolverConfig(gravity=(0.0, -1e6, 0.0), rayleigh_alpha=2.0, newton_iterations=1)
+    results = _both_loops(Material(young_modulus=1e13, poisson_ratio=0.499), config, QGMLSControl(), 1.0, steps=2)
+    report = _assert_same_outcome(results)
+    assert report.line_search_failure == "no decrease" and not report.converged
+    assert report.line_search_halvings == config.line_search_steps
+
+
+@LOOPS
+def test_arap_under_enormous_gravity_reports_no_convergence(device, device_loop):
     """ARAP has no inversion barrier: −1e12 m/s² onto a floor crushes the bar through itself (det F ≈ −6e7 after
     three Newton iterations); the report must not claim a converged step."""
-    config = SolverConfig(gravity=(0, -1e12, 0), newton_iterations=1)
+    config = SolverConfig(gravity=(0, -1e12, 0), newton_iterations=1, device_loop=device_loop)
     solver = SolverQGMLS(_model(), Material(model="arap"), config)
     state = solver.rest_state()
     report = solver.step(state, state, QGMLSControl(colliders=[PlaneCollider()]), 1e-2)
@@ -77,11 +127,12 @@ def test_arap_under_enormous_gravity_reports_no_convergence(device):
     assert report.last_update > 1e3 * config.newton_tolerance
 
 
+@LOOPS
 @pytest.mark.parametrize("where", ["target", "force", "q", "qd"])
 @pytest.mark.parametrize("bad", [math.nan, math.inf])
-def test_non_finite_inputs_are_refused_naming_the_input(device, where, bad):
+def test_non_finite_inputs_are_refused_naming_the_input(device, where, bad, device_loop):
     model = _model()
-    solver = _solver()
+    solver = _solver(config=SolverConfig(device_loop=device_loop))
     state = solver.rest_state()
     pin, tip = _ends(model)
     target = pin.rest.clone()
@@ -98,9 +149,10 @@ def test_non_finite_inputs_are_refused_naming_the_input(device, where, bad):
         solver.step(state, state, control, 1e-2)
 
 
+@LOOPS
 @pytest.mark.parametrize("dt", [math.nan, math.inf, -1e-2, 0.0, "0.01", None])
-def test_bad_dt_is_refused(device, dt):
-    solver = _solver()
+def test_bad_dt_is_refused(device, dt, device_loop):
+    solver = _solver(config=SolverConfig(device_loop=device_loop))
     state = solver.rest_state()
     with pytest.raises(ValueError, match="dt must be a finite positive number"):
         solver.step(state, state, QGMLSControl(), dt)
