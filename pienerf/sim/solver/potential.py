@@ -347,12 +347,13 @@ class QGMLSPotential:
         return self.newton_system(q, ctx, elastic, damping_K, gradients, hessians)[1]
 
     def is_stationary(self, step: torch.Tensor, slope: torch.Tensor, energy: torch.Tensor) -> torch.Tensor:
-        """Whether an iterate is stationary to round-off, as a 0-d bool tensor (no host read): the Newton
-        ``step [nT, 3]`` below ``newton_tolerance`` or its predicted decrease −``slope`` below the energy's rounding.
-        A line search that finds nothing there is no failure."""
+        """Whether an iterate is stationary to round-off, as a 0-d bool tensor (no host read): the energy and the
+        Newton ``step [nT, 3]`` finite, and the step below ``newton_tolerance`` or its predicted decrease −``slope``
+        below the energy's rounding. A line search that finds nothing there is no failure."""
+        finite = torch.isfinite(step).all() & torch.isfinite(energy)
         small = self.displacement(step) < self.config.newton_tolerance
         flat = -slope <= 64.0 * torch.finfo(torch.float64).eps * energy.abs()
-        return small | flat
+        return finite & (small | flat)
 
     def line_search_failure(self, step: torch.Tensor, slope, energy, trials: list[torch.Tensor]) -> str:
         """Why no trial along ``step`` was accepted (one of :data:`LINE_SEARCH_FAILURES`); ``""`` when the iterate is

@@ -15,6 +15,7 @@ from pienerf.sim.solver import (
     PointForces,
     PointTargets,
     QGMLSControl,
+    QGMLSPotential,
     QGMLSState,
     QGMLSStepReport,
     SolverConfig,
@@ -84,6 +85,20 @@ def _assert_same_outcome(results) -> QGMLSStepReport:
     return host
 
 
+def _inverted_start(model: QGMLSModel) -> torch.Tensor:
+    """q ``[nT, 3]`` closest (least squares at the integrator points) to the body mirrored in x = 0: every
+    quadrature point is inverted (det F < 0), so the Neo-Hookean energy is +∞ at the step's start."""
+    potential = QGMLSPotential(model, Material(), SolverConfig())
+    shape = model.ip_shape
+    rows = potential.point_shape_matrix(shape.index.clamp_min(0), shape.value * (shape.index >= 0))
+    rest = model.ip_state(torch.zeros(model.shape_count, 3, dtype=torch.float64, device=model.device))[0]
+    mirror = torch.zeros_like(rest)
+    mirror[:, 0] = -2.0 * rest[:, 0]
+    q = torch.linalg.lstsq(rows.cpu(), mirror.cpu()).solution.to(model.device)
+    assert float(potential.integrator.evaluate(q, gradient=False, hessian=False).min_det) < 0
+    return q
+
+
 @LOOPS
 def test_an_ordinary_step_converges(device, device_loop):
     solver = _solver(config=SolverConfig(device_loop=device_loop))
@@ -113,6 +128,17 @@ def test_a_stiff_body_under_huge_gravity_reports_no_decrease_from_either_loop(de
     report = _assert_same_outcome(results)
     assert report.line_search_failure == "no decrease" and not report.converged
     assert report.line_search_halvings == config.line_search_steps
+
+
+def test_an_inverted_start_reports_a_non_finite_step_from_either_loop(device):
+    """A state whose every quadrature point is inverted has Ψ = +∞: no trial can be compared with it, and both
+    loops say so (the device loop used to take the infinite energy for a stationary iterate and report a converged
+    step)."""
+    start = _inverted_start(_model())
+    results = _both_loops(Material(), SolverConfig(newton_iterations=2), QGMLSControl(), 1e-2, start=start)
+    report = _assert_same_outcome(results)
+    assert report.line_search_failure == "not finite" and not report.converged
+    assert report.energy == math.inf
 
 
 @LOOPS
