@@ -59,3 +59,21 @@ def test_volume_bars_draw_a_bar_per_sample_and_say_when_there_are_none(tmp_path)
     assert (middle < 200).sum() > 50  # the sentence saying why there are no bars, in the middle of the axes
     with pytest.raises(ValueError, match="at least one"):
         plot_volume_bars([], tmp_path / "none.png")
+
+
+def test_time_breakdown_splits_timed_device_loop_steps_by_phase(device):
+    """A device-loop step timed by phase adds to the four step phases, its time outside them to 'other', so that the
+    phases sum to its wall time; an untimed one adds its whole time to 'device loop'."""
+    model = box_model(backend.torch_device())
+    solver = SolverQGMLS(model, Material(), SolverConfig(newton_iterations=2, device_loop=True))
+    state = solver.rest_state()
+    timed, untimed = TimeBreakdown(), TimeBreakdown()
+    report = solver.step(state, state, QGMLSControl(), 1e-2, timed=True)
+    timed.add(report)
+    assert set(timed.seconds) == set(TimeBreakdown.STEP_PHASES) and all(v > 0 for v in timed.seconds.values())
+    total = sum(timed.seconds.values())
+    assert total == pytest.approx(report.time_device_loop, rel=4 * np.finfo(np.float64).eps)
+    report = solver.step(state, state, QGMLSControl(), 1e-2)
+    untimed.add(report)
+    assert untimed.seconds["device loop"] == report.time_device_loop
+    assert sum(untimed.seconds[name] for name in TimeBreakdown.STEP_PHASES) == 0
