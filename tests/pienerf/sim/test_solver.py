@@ -406,19 +406,28 @@ def test_a_pin_held_over_many_steps_costs_one_product_once(device, device_loop):
 
 def test_a_timed_device_loop_step_reports_its_phases_and_the_same_step(device):
     """``timed=True``: the device loop runs uncaptured with its phases timed; each phase takes time, together no more
-    than the step's wall time, and the step is the untimed one's to the bit. Untimed steps report no phases."""
+    than the step's wall time, and the step is the untimed one's: to the bit on the CPU; on CUDA, where the captured
+    graph and the uncaptured launches sum their atomics in other orders, both are Newton iterates converged to the
+    tolerance τ (last update below τ, quadratic convergence), so they lie within 2τ of each other at the integrator
+    points. Untimed steps report no phases."""
     model = box_model(backend.torch_device())
-    config = SolverConfig(device_loop=True, newton_iterations=3, rayleigh_alpha=1.0)
+    tolerance = 1e-7
+    config = SolverConfig(device_loop=True, newton_iterations=8, newton_tolerance=tolerance, rayleigh_alpha=1.0)
     solvers = [SolverQGMLS(model, Material(young_modulus=5e4), config) for _ in range(2)]
     states = [solver.rest_state() for solver in solvers]
     pin = model.handle(model.position[model.position[:, 0] < 0.05])
     control = QGMLSControl(springs=[PointTargets(pin, pin.rest.clone(), 1e5)], colliders=[PlaneCollider()])
     for _ in range(3):
+        states[1].copy_(states[0])  # both steps start alike (on CUDA the last ones ended within 2τ, not equal)
         untimed, timed = (solver.step(state, state, control, 1e-2, timed=timed)
                           for solver, state, timed in zip(solvers, states, (False, True), strict=True))
         assert untimed.device_loop and timed.device_loop
-        assert torch.equal(states[1].q, states[0].q) and torch.equal(states[1].qd, states[0].qd)
-        assert _same_outcome(untimed, timed)
+        if device == "cpu":
+            assert torch.equal(states[1].q, states[0].q) and torch.equal(states[1].qd, states[0].qd)
+            assert _same_outcome(untimed, timed)
+        else:
+            assert untimed.converged and timed.converged
+            assert solvers[0].potential.displacement(states[1].q - states[0].q) <= 2 * tolerance
         phases = (timed.time_assembly, timed.time_solve, timed.time_line_search, timed.time_other)
         assert all(phase > 0 for phase in phases) and timed.timed
         assert sum(phases) <= timed.time_device_loop == timed.time_step
