@@ -31,6 +31,11 @@ def pytest_configure(config):
         "data: touches the shared data folder (directly or through an app's default); CI runs these once more with "
         "PIE_SHARED_DATA pointing nowhere, as on a machine without the folder",
     )
+    config.addinivalue_line(
+        "markers",
+        "slow: takes seconds to tens of seconds (trains a NeRF, runs a benchmark workload or a long simulation); "
+        "`pytest -m 'not slow'` leaves these out for a quick pass, the default run (CI's) keeps them",
+    )
 
 
 def pytest_collection_modifyitems(config, items):
