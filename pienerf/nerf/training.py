@@ -376,6 +376,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
+        self.field.mark_weights_changed()
         if self._averaged is not None:
             with torch.no_grad():
                 torch._foreach_lerp_(self._averaged, self._parameters, 1.0 - self.config.average_decay)
@@ -433,11 +434,13 @@ class Trainer:
         with torch.no_grad():
             current = [p.detach().clone() for p in self._parameters]
             torch._foreach_copy_(self._parameters, self._averaged)
+        self.field.mark_weights_changed()
         try:
             yield self.field
         finally:
             with torch.no_grad():
                 torch._foreach_copy_(self._parameters, current)
+            self.field.mark_weights_changed()
 
     def keep_averaged_weights(self) -> None:
         """Give the field the running average of its weights for good: call it when training is over (a checkpoint
@@ -445,6 +448,7 @@ class Trainer:
         if self._averaged is not None:
             with torch.no_grad():
                 torch._foreach_copy_(self._parameters, self._averaged)
+            self.field.mark_weights_changed()
 
     @torch.no_grad()
     def render_view(

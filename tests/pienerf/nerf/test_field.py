@@ -488,6 +488,32 @@ def test_simulation_of_a_nerf_checkpoint_samples_its_solid(device, teapot_nerf):
     assert float(frame.rgba[..., 3].max()) > 0.9
 
 
+def test_weights_version_follows_every_change_of_the_weights(device, sphere_scene):
+    """A copy made from the weights (a renderer's float16 MLPs) is kept while ``weights_version`` stays: loading
+    weights (the field's own state or a larger module's), an optimiser step and each swap to and from the running
+    average bump it; rendering does not."""
+    field = _field()
+    versions = [field.weights_version]
+    field.load_state_dict(_field(seed=1).state_dict())
+    versions.append(field.weights_version)
+    holder = torch.nn.ModuleDict({"field": field})
+    holder.load_state_dict(holder.state_dict())
+    versions.append(field.weights_version)
+    data = load_nerf_dataset(sphere_scene, "train", downscale=2, background=(0.0, 0.0, 0.0), max_views=2)
+    trainer = Trainer(field, data, _train_config(batch_rays=64))
+    versions.append(field.weights_version)
+    trainer.train_step()
+    versions.append(field.weights_version)
+    with trainer.averaged_weights():
+        versions.append(field.weights_version)
+    versions.append(field.weights_version)
+    trainer.keep_averaged_weights()
+    versions.append(field.weights_version)
+    assert versions[3] == versions[2], "building a trainer leaves the weights"
+    del versions[3]
+    assert all(b > a for a, b in zip(versions, versions[1:], strict=False)), versions
+
+
 def test_radiance_with_float16_mlp_copies_matches_the_field(device):
     """A renderer's float16 copies of the MLPs (half_mlps) give the field's own radiance to float16 precision, and
     stay copies: the field's parameters keep their dtype and gradients."""

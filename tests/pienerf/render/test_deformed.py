@@ -305,25 +305,56 @@ def test_encoded_directions_are_reused_while_the_rays_are_the_same(teapot, monke
     assert len(calls) == 1 and calls[0] is directions
     again = render(directions)
     assert len(calls) == 1, "the same unchanged directions were encoded again"
-    directions.mul_(1.0)  # same values, new _version
-    changed = render(directions)
+    directions.mul_(1.0)  # written in place, the same values
+    again_written = render(directions)
+    assert len(calls) == 1, "directions written with their own values need no new encoding"
+    directions.neg_()  # changed in place: another view through the same tensor
+    render(directions)
     assert len(calls) == 2, "directions changed in place must be encoded again"
+    directions.neg_()
+    changed = render(directions)
+    assert len(calls) == 3, "directions changed back in place must be encoded again"
     copy = directions.clone()
     other = render(copy)
-    assert len(calls) == 3 and calls[2] is copy, "another tensor must be encoded"
+    assert len(calls) == 4 and calls[3] is copy, "another tensor must be encoded"
     monkeypatch.setattr(field, "config", dataclasses.replace(field.config, sh_degree=2))
     render(copy)
-    assert len(calls) == 4, "a field config of other harmonics must encode again"
-    for out in (again, changed, other):
+    assert len(calls) == 5, "a field config of other harmonics must encode again"
+    for out in (again, again_written, changed, other):
         for key in ("rgb", "alpha", "depth"):
             assert torch.equal(out[key], first[key]), key
 
     ground = GroundPlane(extent=0.9, shadow_resolution=16)
     shadowed = render(copy, ground=ground)
-    assert len(calls) == 5 and calls[4] is not copy, "only the shadow map's rays are encoded"
+    assert len(calls) == 6 and calls[5] is not copy, "only the shadow map's rays are encoded"
     render(copy, ground=ground)
-    assert len(calls) == 6 and calls[5] is not copy, "the shadow map's rays must not evict the camera's encoding"
+    assert len(calls) == 7 and calls[6] is not copy, "the shadow map's rays must not evict the camera's encoding"
     assert torch.equal(render(copy, ground=ground)["rgb"], shadowed["rgb"])
+
+
+def test_a_directions_key_names_the_rays_whose_encoding_is_reused(teapot, monkeypatch):
+    """With a key the caller names the directions: the same key reuses the encoding without looking at the values,
+    another key (or none after a key) encodes them again."""
+    model, field, renderer, q = teapot
+    renderer = DeformedRenderer(field, renderer.grid, model)
+    calls = []
+    encode = field.encode_directions
+    monkeypatch.setattr(field, "encode_directions", lambda d: calls.append(d) or encode(d))
+    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 16, fov=0.9)
+    origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(0))
+    frame = renderer.frame(q)
+
+    def render(rays_directions, key):
+        return renderer.render(q, rays=(origins, rays_directions), frame=frame, directions_key=key)
+
+    first = render(directions, ("view", 0))
+    same = render(directions.clone(), ("view", 0))
+    assert len(calls) == 1, "the same key must reuse the encoding"
+    assert torch.equal(same["rgb"], first["rgb"])
+    render(directions, ("view", 1))
+    assert len(calls) == 2, "another key must encode again"
+    render(directions, None)
+    assert len(calls) == 3, "no key after a key must encode again"
 
 
 def _light_cosine(ground: GroundPlane) -> float:
