@@ -155,8 +155,8 @@ class IPIntegrator:
         shape_count = self.shape_count
         # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]. Assembly is a
         # segmented sum: the contributions of real (unpadded) pairs are gathered in order of their
-        # global block, summed per block and written once. Atomic scatter-adds of doubles
-        # (index_add_) took 10 ms of a 30 ms step on an H100 at 78 kernels.
+        # global block, summed per block and written once: atomic scatter-adds of doubles (index_add_) took a
+        # third of a step on CUDA (docs/benchmarks.md, the Q-GMLS step).
         block_index = (self.index[:, :, None] * shape_count + self.index[:, None, :]).reshape(-1)
         pair_valid = (valid[:, :, None] & valid[:, None, :]).reshape(-1)
         contribution = torch.nonzero(pair_valid).squeeze(1)

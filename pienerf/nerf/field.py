@@ -301,8 +301,8 @@ class InferenceMLP(torch.nn.Module):
 
     On CUDA each hidden layer's ReLU runs in its matrix product's epilogue (cuBLASLt, through
     ``torch._addmm_activation``): a layer's activations are then written once instead of being written, read and
-    written again by a separate ReLU, which cost a deformed 800² frame ~2.4 ms of its ~6 ms of MLP on an H100
-    (``docs/benchmarks.md``). Elsewhere the same products and ``relu_`` in place.
+    written again by a separate ReLU, a large share of a deformed frame's MLP time (``docs/benchmarks.md``,
+    ``pienerf.render``). Elsewhere the same products and ``relu_`` in place.
 
     Args:
         mlp: the field's ``torch.nn.Sequential``.

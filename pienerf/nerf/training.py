@@ -13,8 +13,8 @@ The recipe is instant-NGP's (Müller et al. 2022, §5.4 and Appendix E):
   colour (``target = premultiplied + (1 − α) · background``): a constant background would let the
   network paint it into empty space instead of learning transparency;
 * the occupancy grid is left fully occupied for ``grid_warmup_steps`` (16: a fully occupied grid makes every ray
-  march the whole box, and 256 such steps of 16k rays took 20 s on an H100, where 16 reach 29 dB on lego's
-  unseen views in the first 15 s, against 23 dB), then updated every ``grid_update_every`` steps: the first time
+  march the whole box, so fewer warm-up steps reach a higher PSNR in the same time; ``docs/benchmarks.md``, NeRF
+  training), then updated every ``grid_update_every`` steps: the first time
   at every cell, later (large grids) at a quarter of the cells drawn uniformly and a quarter drawn among the
   occupied ones, each stored density decaying by ``grid_decay`` (:meth:`pienerf.nerf.OccupancyGrid.update`);
 * views are rendered with a running average of the weights (``average_decay``, instant-NGP's EMA of 0.95).

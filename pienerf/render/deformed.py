@@ -148,8 +148,8 @@ def _bucket(count: int) -> int:
     """``count`` rounded up to one of 8 sizes an octave (at most an eighth more, multiples of 128).
 
     The field's matrix products then see few shapes however a round's sample count varies from frame to frame:
-    cuBLAS chooses its kernel per new shape on the host (about 0.1 ms a product), which cost a 640 × 480 viewer
-    frame ~5 ms of host time on an H100.
+    cuBLAS chooses its kernel per new shape on the host, a cost paid by every product of a new shape
+    (``docs/benchmarks.md``, ``pienerf.render``).
     """
     step = max(128, 1 << max(count.bit_length() - 4, 0))
     return -(-count // step) * step
@@ -197,7 +197,7 @@ class DeformedRenderer:
         chunk: rays per batch of ``mode="rest"``, which renders by :func:`pienerf.nerf.render_rays`.
         first_round_steps: samples per ray of the first round. ``None``: 16 on CUDA, 1 on the CPU.
         steps_per_round: most samples a ray marches in one round. ``None``: 128 on CUDA, 32 on the CPU. On CUDA
-            a round costs ~1 ms of launches and syncs whatever its size, so few large rounds win
+            a round costs launches and syncs whatever its size, so few large rounds win
             (``docs/benchmarks.md``).
         round_samples: most samples marched in one round over all rays (bounds memory; rays are taken this many
             at a time). ``None``: 2²³ on CUDA (all rays of an 800² frame at once), 2¹⁸ on the CPU.
