@@ -256,9 +256,12 @@ class NGPField(torch.nn.Module):
         sigma = torch.where(inside, truncated_exp(h[:, 0].to(torch.promote_types(h.dtype, torch.float32))), 0.0)
         return sigma, h
 
-    def density(self, x: torch.Tensor) -> torch.Tensor:
-        """Volume density σ ``[N]``, per metre, at world points ``x [N, 3]`` (float32, backend device)."""
-        return self._density_outputs(x)[0]
+    def density(self, x: torch.Tensor, differentiable_in_x: bool = False) -> torch.Tensor:
+        """Volume density σ ``[N]``, per metre, at world points ``x [N, 3]`` (float32, backend device).
+
+        ``differentiable_in_x``: through the torch reference of the encoding, differentiable in ``x`` and in any
+        float dtype, instead of the float32 kernels."""
+        return self._density_outputs(x, differentiable_in_x=differentiable_in_x)[0]
 
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density ``σ [N]`` (per metre) and colour ``rgb [N, 3]`` in [0, 1] at points ``x [N, 3]`` seen along

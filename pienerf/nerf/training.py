@@ -64,9 +64,9 @@ _optimizer_import: threading.Thread | None = None  # the thread of start_optimiz
 def start_optimizer_import() -> None:
     """Start importing ``torch._dynamo`` on a background thread, unless it is loaded or loading.
 
-    ``torch.optim``'s optimizers import ``torch._dynamo`` when the first one is built (in :class:`Trainer`): about a
-    second of Python on one core, the largest part of a training program's start-up after ``import torch``
-    (``docs/benchmarks.md``). A program that will train calls this first thing, so that the import overlaps with its
+    ``torch.optim``'s optimizers import ``torch._dynamo`` when the first one is built (in :class:`Trainer`): Python on
+    one core, the largest part of a training program's start-up after ``import torch`` (``docs/benchmarks.md``, NeRF
+    training). A program that will train calls this first thing, so that the import overlaps with its
     backend start and data loading (whose image decoding releases the interpreter lock); the :class:`Trainer` then
     finds the module loaded, or waits for the rest of its import. An import that fails on the thread is retried, and
     raises, where the optimizer is built.

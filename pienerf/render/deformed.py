@@ -75,6 +75,7 @@ __all__ = [
     "DeformedRenderer",
     "GroundPlane",
     "RenderStats",
+    "bucket_size",
 ]
 
 LIGHT_DIRECTION = (0.35, 1.0, 0.55)
@@ -144,7 +145,7 @@ def _compact(mask: torch.Tensor, count: int, size: int | None = None) -> torch.T
     return torch.nonzero_static(mask, size=count if size is None else size, fill_value=0).view(-1)
 
 
-def _bucket(count: int) -> int:
+def bucket_size(count: int) -> int:
     """``count`` rounded up to one of 8 sizes an octave (at most an eighth more, multiples of 128).
 
     The field's matrix products then see few shapes however a round's sample count varies from frame to frame:
@@ -405,7 +406,7 @@ class DeformedRenderer:
         if background.shape != (3,):
             raise ValueError(f"background must be an RGB triple, got shape {tuple(background.shape)}")
         if frame is None and not (mode == "rest" and ground is None):
-            frame = self.frame(self._check_q(q))
+            frame = self.frame(self.check_q(q))
         if mode == "rest" and ground is None:
             out = render_rays(self.field, self.grid, origins, directions, background=background, chunk=self.chunk)
             result = {"rgb": out["rgb"], "alpha": out["opacity"], "depth": out["depth"]}
@@ -512,8 +513,8 @@ class DeformedRenderer:
         (Querying every marched sample with σ zeroed instead saves the count but not the time:
         ``docs/benchmarks.md``.)
         """
-        # the kept samples' slots of the round's [A · k], in ray order, padded to a bucketed count (_bucket)
-        padded = _compact(keep, kept, _bucket(kept) if rest.is_cuda else kept)
+        # the kept samples' slots of the round's [A · k], in ray order, padded to a bucketed count (bucket_size)
+        padded = _compact(keep, kept, bucket_size(kept) if rest.is_cuda else kept)
         index = padded[:kept]
         offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
         offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
@@ -577,11 +578,14 @@ class DeformedRenderer:
 
     # -- arguments -------------------------------------------------------------------------------
 
-    def _check_q(self, q: torch.Tensor) -> torch.Tensor:
+    def check_q(self, q: torch.Tensor) -> torch.Tensor:
+        """``q`` when it is the model's DOFs ``[nT, 3]``, else a ValueError naming the expected shape."""
         expected = (self.model.shape_count, 3)
         if not isinstance(q, torch.Tensor) or tuple(q.shape) != expected:
             raise ValueError(f"q must be the model's DOFs {list(expected)}, got {list(getattr(q, 'shape', []))}")
         return q.to(dtype=torch.float64, device=self.model.device)
+
+    _check_q = check_q  # the former name, kept while callers move to check_q
 
     def _rays(self, cameras, rays, view, resolution):
         device = backend.torch_device()

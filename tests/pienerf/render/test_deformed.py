@@ -19,7 +19,7 @@ from kernels.raycast import MeshBVH, shade
 from kernels.volume_render import composite_forward, march_rays
 from kernels.warp_rays import splat_occupancy, warp_to_rest
 from pienerf.nerf.cameras import Cameras
-from pienerf.render.deformed import DeformedRenderer, GroundPlane
+from pienerf.render.deformed import DeformedRenderer, GroundPlane, bucket_size
 from pienerf.scenes import MeshAlbedoField, scene_cameras, scene_density
 from pienerf.sim.materials import Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
@@ -380,10 +380,8 @@ def test_bad_arguments_raise_clear_errors(teapot):
 def test_bucketed_sample_counts_are_few_and_close():
     """The sample count a round queries is padded to one of 8 sizes an octave: never below the count, at most an
     eighth (or 128) above it, so the field's products see few shapes."""
-    from pienerf.render.deformed import _bucket
-
     counts = list(range(1, 5000)) + [10**5 + 7, 2**20 - 1, 2**20, 3 * 10**6 + 11]
     for count in counts:
-        padded = _bucket(count)
+        padded = bucket_size(count)
         assert count <= padded <= max(count + 127, count * 9 // 8 + 1), (count, padded)
-    assert len({_bucket(c) for c in range(2**16, 2**17)}) <= 9
+    assert len({bucket_size(c) for c in range(2**16, 2**17)}) <= 9
