@@ -174,6 +174,7 @@ def test_startup_report_is_the_last_json_line():
         parse_startup_report('[Taichi] Starting\n{"other": 1}\n')
 
 
+@pytest.mark.slow  # a fresh Python process that imports torch and trains
 def test_startup_probe_trains_one_step_in_a_fresh_process(shared_data):
     """The probe's child process at smoke size on a few downscaled lego views: the phases add up to the total."""
     report = measure_startup("cpu", "smoke", shared_data / "nerf_synthetic_lego", downscale=8, max_views=9)
