@@ -19,8 +19,9 @@ from kernels.raycast import MeshBVH, shade
 from kernels.volume_render import composite_forward, march_rays
 from kernels.warp_rays import splat_occupancy, warp_to_rest
 from pienerf.nerf.cameras import Cameras
+from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
 from pienerf.render.deformed import DeformedRenderer, GroundPlane, bucket_size
-from pienerf.scenes import MeshAlbedoField, scene_cameras, scene_density
+from pienerf.scenes import MeshAlbedoField, scene_cameras, scene_density, scene_mesh
 from pienerf.sim.materials import Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
 from pienerf.sim.sampling import grid_sample
@@ -355,6 +356,31 @@ def test_a_directions_key_names_the_rays_whose_encoding_is_reused(teapot, monkey
     assert len(calls) == 2, "another key must encode again"
     render(directions, None)
     assert len(calls) == 3, "no key after a key must encode again"
+
+
+def test_float16_copies_follow_the_fields_weights(teapot):
+    """Under half precision the renderer queries float16 copies of the field's MLPs; weights loaded into the field
+    afterwards are copied again, so the next image is that of a renderer built after the change."""
+    model, _, _, q = teapot
+    if backend.torch_device().type != "cuda":
+        pytest.skip("the float16 copies of the MLPs are made on CUDA only")
+    lo, hi = scene_mesh("teapot").bounds
+    aabb = torch.stack([lo - 0.05, hi + 0.05])
+    torch.manual_seed(0)
+    field = NGPField(NGPConfig(), aabb).to(backend.torch_device())
+    grid = OccupancyGrid.for_field(field)  # fully occupied: every sample is queried
+    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 16, fov=0.9)
+    renderer = DeformedRenderer(field, grid, model, half_precision=True)
+    with torch.no_grad():
+        before = renderer.render(q, cameras)["rgb"]
+        weights = {name: value.clone() for name, value in field.state_dict().items()}
+        weights["encoding.table"].fill_(1.0)  # an opaque body: every feature 1, ...
+        weights["density_mlp.2.weight"].fill_(1.0)  # ... every hidden unit adding to the density
+        field.load_state_dict(weights)
+        after = renderer.render(q, cameras)["rgb"]
+        fresh = DeformedRenderer(field, grid, model, half_precision=True).render(q, cameras)["rgb"]
+    assert float((after - before).abs().max()) > 1e-2, "the new weights must change the image"
+    torch.testing.assert_close(after, fresh, rtol=0, atol=1e-3)  # float16 products in either renderer
 
 
 def _light_cosine(ground: GroundPlane) -> float:
