@@ -336,11 +336,11 @@ def launch(kernel, dim: int | tuple[int, ...], args: list) -> None:
     checks.
 
     ``wp.launch`` of a generic kernel (``Any``-typed arguments) infers the argument types and finds the overload at
-    every launch, makes a ``wp.array`` view of each tensor and packs every argument: about 35 µs of host time with
-    eight arguments, more than the kernel itself for a few thousand elements. Here the first launch of each pattern
-    of argument types is recorded (``wp.launch(..., record_cmd=True)``), and later ones write the tensors' addresses
-    and shapes into the recorded descriptors and replay it (:class:`_Replay`): about 16 µs (on a 2-core CPU,
-    against 35 µs).
+    every launch, makes a ``wp.array`` view of each tensor and packs every argument, host time that exceeds the
+    kernel itself for a few thousand elements. Here the first launch of each pattern of argument types is recorded
+    (``wp.launch(..., record_cmd=True)``), and later ones write the tensors' addresses and shapes into the recorded
+    descriptors and replay it (:class:`_Replay`), at about half the host time (``docs/benchmarks.md``,
+    ``kernels.backend``).
     """
     device = warp_device()
     key = (kernel, device, *(_signature(a) for a in args))
@@ -425,8 +425,8 @@ class CapturedCall:
                     self.fn()
                 # No collection during the capture: a collected object that frees device memory or destroys a graph
                 # (another solver's, say) would make an operation the capture forbids and void the graph. (Not
-                # ``torch.cuda.graph``, which collects first: 140 ms with this project's modules loaded.) Thread-local
-                # mode: other threads' CUDA calls may go on.
+                # ``torch.cuda.graph``, which collects first, a full collection per capture: ``docs/benchmarks.md``.)
+                # Thread-local mode: other threads' CUDA calls may go on.
                 gc.disable()
                 graph = torch.cuda.CUDAGraph()
                 graph.capture_begin(capture_error_mode="thread_local")
@@ -502,8 +502,7 @@ def one_torch_thread_on_cpu():
 
     Also a decorator. For loops of many small tensor operations (a cloth step's thousands of rows, a tracking
     iteration around the rasterizer): torch's intra-op threads cost more to wake than they save, and on shared cores
-    they wait on each other. One thread ran the 1k-vertex sheet step 5× faster, and a tracking iteration of 4 views at
-    96² in 0.13 s against over a second on two busy threads.
+    they wait on each other (figures: ``docs/benchmarks.md``, ``kernels.backend``).
     """
     if torch_device().type != "cpu":
         yield

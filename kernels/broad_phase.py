@@ -201,8 +201,8 @@ class BoxTree:
 
     def refit(self, lo: torch.Tensor, hi: torch.Tensor) -> None:
         """Take new vertex boxes (as the constructor takes them, same shapes) and refit the BVH to them: its
-        hierarchy stays, its node boxes are recomputed bottom-up. On an H100 a refit of skirt7271's 11k edges took
-        0.03 ms against 0.2 ms for a build (``docs/benchmarks.md``). Every pair is still found (the boxes are
+        hierarchy stays, its node boxes are recomputed bottom-up, a fraction of a build's cost
+        (``docs/benchmarks.md``, ``kernels.broad_phase``). Every pair is still found (the boxes are
         exact); a hierarchy refitted far from the shape it was built for only makes the walks longer, so callers
         build anew from time to time."""
         _check_boxes(lo, hi)
@@ -326,8 +326,8 @@ class OverlapSearch:
     copy to the prefix-summed offsets finishes the request. Only the query primitives that found more pairs than
     their slots walk again, writing all theirs at their offsets, and the request's slots grow to the next power of
     two that would have held them (at most :attr:`max_slots`), for the next search. The pairs and their
-    order are :func:`find_overlaps`'. The walks dominate a garment's candidate search: on an H100 each took about a
-    millisecond for skirt7271's 11k edges or the body's 22k (``docs/benchmarks.md``).
+    order are :func:`find_overlaps`'. The walks dominate a garment's candidate search (``docs/benchmarks.md``,
+    ``kernels.broad_phase``).
 
     Args:
         slots: pairs each query primitive can hold at first.

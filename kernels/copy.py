@@ -3,9 +3,9 @@
 Each moves ``2 * x.numel() * x.element_size()`` bytes (one read, one write per element).
 Both frameworks are kept on purpose: the copy is the bandwidth each framework reaches on a device.
 
-Each thread moves 16 bytes (a 4-vector) when the length allows: with one float per thread the
-kernels reached only 1.55-1.63 TB/s (34 % of 4.8 TB/s) on an H200 for 2x256 MiB, while torch's
-vectorised copy reached 3.5 TB/s; HBM needs more bytes in flight per thread than a scalar load.
+Each thread moves 16 bytes (a 4-vector) when the length allows: HBM needs more bytes in flight per thread
+than a scalar load, and with one float per thread the kernels reached well under torch's vectorised copy
+(``docs/benchmarks.md``, ``kernels.copy``).
 """
 
 

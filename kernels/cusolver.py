@@ -4,8 +4,8 @@ The garment simulator filters every element Hessian (9×9 membrane, 12×12 bendi
 eigen-decomposition, once per Newton iteration. ``torch.linalg.eigh`` on a CUDA batch runs cuSOLVER's
 divide-and-conquer batched solver and then reads its error codes back, so every call waits for the device. The
 Jacobi solver ``syevjBatched`` is built for batches of matrices up to 32×32 (one matrix per thread block, in
-shared memory) and leaves its status on the device; on an H100 it is 2-3x faster than ``torch.linalg.eigh`` over
-the garment's batches, with reconstructions ``Q Λ Qᵀ`` within 3e-14 of the input (``docs/benchmarks.md``).
+shared memory) and leaves its status on the device; over the garment's batches it is the faster of the two on
+CUDA, with reconstructions ``Q Λ Qᵀ`` within 3e-14 of the input (``docs/benchmarks.md``, ``kernels.cusolver``).
 
 The library comes with torch's CUDA wheels (``nvidia/cu13/lib`` or ``nvidia/cusolver/lib`` on ``sys.path``); the
 path in ``$CUSOLVER_LIBRARY`` goes first, the loader's search path last. :func:`available` says whether it loads.

@@ -13,7 +13,7 @@ Conventions:
 * Every per-element Hessian is exact (closed form, no Gauss-Newton truncation); :func:`project_psd` replaces it
   by its nearest positive semi-definite matrix (eigenvalues clamped at zero). The projection runs after the
   kernel as one batched eigen-decomposition: cuSOLVER's batched Jacobi solver on CUDA (:mod:`kernels.cusolver`,
-  about 3× faster than ``torch.linalg.eigh`` there, and it does not wait for the device), ``torch.linalg.eigh``
+  faster than ``torch.linalg.eigh`` there, and it does not wait for the device), ``torch.linalg.eigh``
   (LAPACK) on the CPU. The projection costs several times the kernel (``docs/benchmarks.md``); a per-thread
   Jacobi eigensolver in Warp is slower on both devices (:mod:`kernels.assembly`); the solver skips projection
   where the Hessian is known PSD (barrier pairs far from contact have zero Hessians).
@@ -98,7 +98,7 @@ def project_psd(hess: torch.Tensor, absolute: bool = False, eigen_dtype: torch.d
         return hess.clone()
     decomposed = hess if eigen_dtype is None else hess.to(eigen_dtype)
     if hess.device.type == "cuda" and hess.shape[-1] <= cusolver.MAX_SIZE and cusolver.available():
-        eigval, eigvec, _ = cusolver.eigh(decomposed)  # batched Jacobi: 3× faster, and no read from the device
+        eigval, eigvec, _ = cusolver.eigh(decomposed)  # batched Jacobi: no read from the device
     else:
         eigval, eigvec = torch.linalg.eigh(decomposed)
     eigval, eigvec = eigval.to(hess.dtype), eigvec.to(hess.dtype)

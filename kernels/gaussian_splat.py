@@ -38,8 +38,8 @@ Framework: Taichi, because both kernels are per-pixel loops of data-dependent le
 project gives to Taichi for rendering that must also run on a CPU (Taichi uses every core, Warp's CPU
 backend one); a Warp port was not written. Nothing is CPU-only: no shared memory (threads of a tile read
 the same list entries from global memory), and the backward has two layouts of one kernel: on the CPU
-one thread per tile owns the tile's list entries and adds without atomics (30 % faster than atomics
-there); on CUDA one thread per pixel adds atomically. Per-entry gradients are then summed per Gaussian
+one thread per tile owns the tile's list entries and adds without atomics (faster than atomics there,
+``docs/benchmarks.md``); on CUDA one thread per pixel adds atomically. Per-entry gradients are then summed per Gaussian
 with ``index_add_``.
 
 Timings against the dense torch reference: ``docs/benchmarks.md``.

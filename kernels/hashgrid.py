@@ -542,7 +542,7 @@ class HashGridFunction(torch.autograd.Function):
             if not _row_or_feature_major(grad_out):
                 grad_out = grad_out.contiguous()
             # a feature-major gradient (the training step's, see hashgrid_backward) goes as it is: Warp reads it in
-            # place, 8-12 % faster on a lego training step's samples on an H100 than its row-major copy and read
+            # place, which beats a row-major copy and its read (docs/benchmarks.md, kernels.hashgrid)
             grad_table = hashgrid_backward(x, grad_out, resolutions, ctx.table_size, framework=ctx.framework)
         return None, grad_table, None, None
 

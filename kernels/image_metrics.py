@@ -56,7 +56,7 @@ def ssim(
         window_size, sigma: the Gaussian window, pixels.
         k1, k2: stabilising constants, ``C_i = (k_i L)²``.
         compute_dtype: precision of the local statistics; float64 for reported metrics, float32 where SSIM is a
-            loss evaluated thousands of times (4× faster on a CPU, differences ~1e-6).
+            loss evaluated thousands of times (faster, differences ~1e-6; ``docs/benchmarks.md``).
 
     Returns:
         Scalar tensor in ``[-1, 1]``: the SSIM map averaged over valid positions, channels and images.

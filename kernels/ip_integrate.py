@@ -155,8 +155,8 @@ class IPIntegrator:
         shape_count = self.shape_count
         # Block (s, t) of IP k lands at block row index[k, s], column index[k, t]. Assembly is a
         # segmented sum: the contributions of real (unpadded) pairs are gathered in order of their
-        # global block, summed per block and written once. Atomic scatter-adds of doubles
-        # (index_add_) took 10 ms of a 30 ms step on an H100 at 78 kernels.
+        # global block, summed per block and written once: atomic scatter-adds of doubles (index_add_) took a
+        # third of a step on CUDA (docs/benchmarks.md, the Q-GMLS step).
         block_index = (self.index[:, :, None] * shape_count + self.index[:, None, :]).reshape(-1)
         pair_valid = (valid[:, :, None] & valid[:, None, :]).reshape(-1)
         contribution = torch.nonzero(pair_valid).squeeze(1)
@@ -216,10 +216,10 @@ class IPIntegrator:
             # C_kgt[a, b, f] = Σ_d wA[a, b, f, d] D_kgt,d ; H_k[s, t, a, f] = Σ_gb D_kgs,b C_kgt[a, b, f]
             C = torch.einsum("kgabfd,kgtd->kgbtaf", wA.view(K, G, 3, 3, 3, 3), self._shape_grad_product)
             blocks = torch.bmm(self._shape_grad_rows, C.reshape(K, G * 3, S * 9))
-            result.hessian = self._sum_blocks(blocks.reshape(-1, 9))
+            result.hessian = self.sum_blocks(blocks.reshape(-1, 9))
         return result
 
-    def _sum_blocks(self, blocks: torch.Tensor, warp_kernel: bool | None = None) -> torch.Tensor:
+    def sum_blocks(self, blocks: torch.Tensor, warp_kernel: bool | None = None) -> torch.Tensor:
         """The dense ``[3nT, 3nT]`` float64 Hessian from the per-IP 3×3 blocks ``[K·S·S, 9]`` (``"per_ip"`` assembly;
         float64 or float32, summed in float64 either way), by the Warp kernel (``warp_kernel``; ``None``: on CUDA)
         or by torch's segmented sum (on the CPU, as fast and already there)."""

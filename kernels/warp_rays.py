@@ -72,8 +72,8 @@ SINGULAR_DETERMINANT = 1e-6
 """``|det J|`` below which a Newton Jacobian (dimensionless) counts as singular."""
 
 EXHAUSTIVE_IPS = 512
-"""Up to this many IPs a round finds each sample's 3 nearest by measuring every IP instead of through the hash grid:
-on an H100, 96 IPs and 2.9M samples a round, the grid's search took 2.1 ms."""
+"""Up to this many IPs a round finds each sample's 3 nearest by measuring every IP instead of through the hash grid,
+which is the faster there (``docs/benchmarks.md``, ``kernels.warp_rays``)."""
 
 _MIN_DISTANCE = 1e-12  # metres; a sample exactly on an IP gets weight 1 / this instead of 1 / 0
 

@@ -18,9 +18,9 @@ triangle mesh (its vertices lie on the solid's surface) with per-vertex albedo, 
 here). Parts overlap instead of being joined by booleans. The renderer (:func:`render_scene`) casts rays against
 all parts' triangles: the first hit is the visible surface, wherever parts overlap. The simulator's density
 (:func:`scene_density`) is the union of the analytic solids, ``d = min_i d_i``: exact, free of tessellation error,
-and cheap, where a grid-sampled distance of each mesh (``MeshDensity``) would cost seconds per part and blur the
-1 cm thin parts. A mesh-only union would also be wrong: distances to the buried faces of overlapping parts would
-put density walls inside the solid.
+and cheap, where a grid-sampled distance of each mesh (``MeshDensity``) would cost a grid of distance queries per
+part and blur the 1 cm thin parts. A mesh-only union would also be wrong: distances to the buried faces of
+overlapping parts would put density walls inside the solid.
 """
 
 from __future__ import annotations

@@ -4,6 +4,9 @@ Taichi holds one architecture per process, so a test process runs its kernels on
 ``--device`` picks it (default: cuda when present, else cpu). The ``device`` fixture is parametrised
 over that choice, so every kernel test runs on CPU here and on CUDA on a GPU machine; run
 ``pytest --device cpu`` there for the CPU pass.
+
+Markers: ``data`` (touches the shared data folder) and ``slow`` (seconds to tens of seconds each): ``pytest -m "not
+slow"`` is the quick pass for development; the default run, CI's, runs every test.
 """
 
 from __future__ import annotations
@@ -30,6 +33,11 @@ def pytest_configure(config):
         "markers",
         "data: touches the shared data folder (directly or through an app's default); CI runs these once more with "
         "PIE_SHARED_DATA pointing nowhere, as on a machine without the folder",
+    )
+    config.addinivalue_line(
+        "markers",
+        "slow: takes seconds to tens of seconds (trains a NeRF, runs a benchmark workload or a long simulation); "
+        "`pytest -m 'not slow'` leaves these out for a quick pass, the default run (CI's) keeps them",
     )
 
 

@@ -178,8 +178,18 @@ def spherical_harmonics(directions: torch.Tensor, degree: int = 4) -> torch.Tens
     return torch.stack(out, dim=-1)
 
 
+def _weights_loaded(field: NGPField, incompatible_keys) -> None:
+    """``load_state_dict``'s post-hook of :class:`NGPField`: the loaded weights are a new generation."""
+    field.mark_weights_changed()
+
+
 class NGPField(torch.nn.Module):
     """Radiance field ``(x, d) → (σ, rgb)`` of instant-NGP over a scene box (module docstring).
+
+    Changing the weights in place is announced by :meth:`mark_weights_changed`, which bumps
+    :attr:`weights_version`: the trainer does so after each optimiser step and each swap of weights, and
+    ``load_state_dict`` does so by itself. Copies made from the weights (a renderer's float16 MLPs) are kept while the
+    version they were made at is the field's.
 
     Args:
         config: hyper-parameters.
@@ -188,6 +198,10 @@ class NGPField(torch.nn.Module):
 
     def __init__(self, config: NGPConfig | None = None, aabb: torch.Tensor | None = None):
         super().__init__()
+        self.weights_version = 0
+        """Generation of the weights, bumped by :meth:`mark_weights_changed`."""
+        # a field loaded as part of a larger module runs this hook too (a module-level function: the field pickles)
+        self.register_load_state_dict_post_hook(_weights_loaded)
         self.config = config or NGPConfig()
         aabb = torch.tensor([[-1.5] * 3, [1.5] * 3]) if aabb is None else torch.as_tensor(aabb, dtype=torch.float32)
         if aabb.shape != (2, 3) or not bool((aabb[1] > aabb[0]).all()):
@@ -206,6 +220,11 @@ class NGPField(torch.nn.Module):
             layers += [torch.nn.ReLU(), torch.nn.Linear(c.color_hidden, c.color_hidden, bias=False)]
         layers += [torch.nn.ReLU(), torch.nn.Linear(c.color_hidden, 3, bias=False), torch.nn.Sigmoid()]
         self.color_mlp = torch.nn.Sequential(*layers)
+
+    def mark_weights_changed(self) -> None:
+        """Announce that the weights changed in place (an optimiser step, a copy into the parameters): bumps
+        :attr:`weights_version`, so that copies made from the old weights are made again."""
+        self.weights_version += 1
 
     def to_unit_cube(self, x: torch.Tensor) -> torch.Tensor:
         """World points ``[N, 3]`` (metres) to the encoding's unit cube, ``(x − lo) / (hi − lo)``."""
@@ -237,9 +256,12 @@ class NGPField(torch.nn.Module):
         sigma = torch.where(inside, truncated_exp(h[:, 0].to(torch.promote_types(h.dtype, torch.float32))), 0.0)
         return sigma, h
 
-    def density(self, x: torch.Tensor) -> torch.Tensor:
-        """Volume density σ ``[N]``, per metre, at world points ``x [N, 3]`` (float32, backend device)."""
-        return self._density_outputs(x)[0]
+    def density(self, x: torch.Tensor, differentiable_in_x: bool = False) -> torch.Tensor:
+        """Volume density σ ``[N]``, per metre, at world points ``x [N, 3]`` (float32, backend device).
+
+        ``differentiable_in_x``: through the torch reference of the encoding, differentiable in ``x`` and in any
+        float dtype, instead of the float32 kernels."""
+        return self._density_outputs(x, differentiable_in_x=differentiable_in_x)[0]
 
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density ``σ [N]`` (per metre) and colour ``rgb [N, 3]`` in [0, 1] at points ``x [N, 3]`` seen along
@@ -272,7 +294,7 @@ class NGPField(torch.nn.Module):
 
     def half_mlps(self) -> tuple[torch.nn.Module, torch.nn.Module]:
         """Float16 copies ``(density, colour)`` of the MLPs for :meth:`radiance`, for inference only
-        (:class:`InferenceMLP`; copies: they do not follow later training)."""
+        (:class:`InferenceMLP`; copies: they do not follow later training, see :attr:`weights_version`)."""
         return tuple(InferenceMLP(mlp, torch.float16) for mlp in (self.density_mlp, self.color_mlp))
 
 
@@ -282,8 +304,8 @@ class InferenceMLP(torch.nn.Module):
 
     On CUDA each hidden layer's ReLU runs in its matrix product's epilogue (cuBLASLt, through
     ``torch._addmm_activation``): a layer's activations are then written once instead of being written, read and
-    written again by a separate ReLU, which cost a deformed 800² frame ~2.4 ms of its ~6 ms of MLP on an H100
-    (``docs/benchmarks.md``). Elsewhere the same products and ``relu_`` in place.
+    written again by a separate ReLU, a large share of a deformed frame's MLP time (``docs/benchmarks.md``,
+    ``pienerf.render``). Elsewhere the same products and ``relu_`` in place.
 
     Args:
         mlp: the field's ``torch.nn.Sequential``.

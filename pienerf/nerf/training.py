@@ -13,8 +13,8 @@ The recipe is instant-NGP's (Müller et al. 2022, §5.4 and Appendix E):
   colour (``target = premultiplied + (1 − α) · background``): a constant background would let the
   network paint it into empty space instead of learning transparency;
 * the occupancy grid is left fully occupied for ``grid_warmup_steps`` (16: a fully occupied grid makes every ray
-  march the whole box, and 256 such steps of 16k rays took 20 s on an H100, where 16 reach 29 dB on lego's
-  unseen views in the first 15 s, against 23 dB), then updated every ``grid_update_every`` steps: the first time
+  march the whole box, so fewer warm-up steps reach a higher PSNR in the same time; ``docs/benchmarks.md``, NeRF
+  training), then updated every ``grid_update_every`` steps: the first time
   at every cell, later (large grids) at a quarter of the cells drawn uniformly and a quarter drawn among the
   occupied ones, each stored density decaying by ``grid_decay`` (:meth:`pienerf.nerf.OccupancyGrid.update`);
 * views are rendered with a running average of the weights (``average_decay``, instant-NGP's EMA of 0.95).
@@ -64,9 +64,9 @@ _optimizer_import: threading.Thread | None = None  # the thread of start_optimiz
 def start_optimizer_import() -> None:
     """Start importing ``torch._dynamo`` on a background thread, unless it is loaded or loading.
 
-    ``torch.optim``'s optimizers import ``torch._dynamo`` when the first one is built (in :class:`Trainer`): about a
-    second of Python on one core, the largest part of a training program's start-up after ``import torch``
-    (``docs/benchmarks.md``). A program that will train calls this first thing, so that the import overlaps with its
+    ``torch.optim``'s optimizers import ``torch._dynamo`` when the first one is built (in :class:`Trainer`): Python on
+    one core, the largest part of a training program's start-up after ``import torch`` (``docs/benchmarks.md``, NeRF
+    training). A program that will train calls this first thing, so that the import overlaps with its
     backend start and data loading (whose image decoding releases the interpreter lock); the :class:`Trainer` then
     finds the module loaded, or waits for the rest of its import. An import that fails on the thread is retried, and
     raises, where the optimizer is built.
@@ -376,6 +376,7 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         self.optimizer.step()
+        self.field.mark_weights_changed()
         if self._averaged is not None:
             with torch.no_grad():
                 torch._foreach_lerp_(self._averaged, self._parameters, 1.0 - self.config.average_decay)
@@ -433,11 +434,13 @@ class Trainer:
         with torch.no_grad():
             current = [p.detach().clone() for p in self._parameters]
             torch._foreach_copy_(self._parameters, self._averaged)
+        self.field.mark_weights_changed()
         try:
             yield self.field
         finally:
             with torch.no_grad():
                 torch._foreach_copy_(self._parameters, current)
+            self.field.mark_weights_changed()
 
     def keep_averaged_weights(self) -> None:
         """Give the field the running average of its weights for good: call it when training is over (a checkpoint
@@ -445,6 +448,7 @@ class Trainer:
         if self._averaged is not None:
             with torch.no_grad():
                 torch._foreach_copy_(self._parameters, self._averaged)
+            self.field.mark_weights_changed()
 
     @torch.no_grad()
     def render_view(

@@ -75,6 +75,7 @@ __all__ = [
     "DeformedRenderer",
     "GroundPlane",
     "RenderStats",
+    "bucket_size",
 ]
 
 LIGHT_DIRECTION = (0.35, 1.0, 0.55)
@@ -144,12 +145,12 @@ def _compact(mask: torch.Tensor, count: int, size: int | None = None) -> torch.T
     return torch.nonzero_static(mask, size=count if size is None else size, fill_value=0).view(-1)
 
 
-def _bucket(count: int) -> int:
+def bucket_size(count: int) -> int:
     """``count`` rounded up to one of 8 sizes an octave (at most an eighth more, multiples of 128).
 
     The field's matrix products then see few shapes however a round's sample count varies from frame to frame:
-    cuBLAS chooses its kernel per new shape on the host (about 0.1 ms a product), which cost a 640 × 480 viewer
-    frame ~5 ms of host time on an H100.
+    cuBLAS chooses its kernel per new shape on the host, a cost paid by every product of a new shape
+    (``docs/benchmarks.md``, ``pienerf.render``).
     """
     step = max(128, 1 << max(count.bit_length() - 4, 0))
     return -(-count // step) * step
@@ -197,7 +198,7 @@ class DeformedRenderer:
         chunk: rays per batch of ``mode="rest"``, which renders by :func:`pienerf.nerf.render_rays`.
         first_round_steps: samples per ray of the first round. ``None``: 16 on CUDA, 1 on the CPU.
         steps_per_round: most samples a ray marches in one round. ``None``: 128 on CUDA, 32 on the CPU. On CUDA
-            a round costs ~1 ms of launches and syncs whatever its size, so few large rounds win
+            a round costs launches and syncs whatever its size, so few large rounds win
             (``docs/benchmarks.md``).
         round_samples: most samples marched in one round over all rays (bounds memory; rays are taken this many
             at a time). ``None``: 2²³ on CUDA (all rays of an 800² frame at once), 2¹⁸ on the CPU.
@@ -250,8 +251,9 @@ class DeformedRenderer:
         if half_precision is None:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
-        self._half_copies, self._half_versions = None, None  # float16 MLPs and the field's versions they copy
-        self._encoded = None  # (directions, their _version, what the encoding depends on, encoded): _encode
+        self._half_copies, self._half_key = None, None  # float16 MLPs, and (field, its weights_version) they copy
+        # (directions, a copy of them or the caller's key, what the encoding depends on, encoded): _encode
+        self._encoded = None
         self.framework = backend.check_framework(framework)
         self._rest_occupancy = grid.occupied.to(device=device, dtype=torch.uint8).contiguous()
         self._rest_aabb = grid.aabb.detach().float().cpu()
@@ -276,40 +278,39 @@ class DeformedRenderer:
         self._cell_ip = nearest[:, 0].long()
 
     def _half_mlps(self):
-        """The field's MLPs in float16 (:meth:`pienerf.nerf.NGPField.half_mlps`), copied again whenever training
-        has changed the field's own since the last copy."""
-        versions = tuple(p._version for mlp in (self.field.density_mlp, self.field.color_mlp) for p in mlp.parameters())
-        if self._half_versions != versions:
-            self._half_copies, self._half_versions = self.field.half_mlps(), versions
+        """The field's MLPs in float16 (:meth:`pienerf.nerf.NGPField.half_mlps`), copied again whenever the field's
+        weights changed since the last copy (:attr:`pienerf.nerf.NGPField.weights_version`)."""
+        key = (self.field, self.field.weights_version)
+        if self._half_key is None or self._half_key[0] is not key[0] or self._half_key[1] != key[1]:
+            self._half_copies, self._half_key = self.field.half_mlps(), key
         return self._half_copies
 
-    def _encode(self, directions: torch.Tensor, reuse: bool) -> torch.Tensor:
+    def _encode(self, directions: torch.Tensor, reuse: bool, key=None) -> torch.Tensor:
         """The field's encoding ``[R, C]`` of the rays' unit directions ``[R, 3]``
         (:meth:`pienerf.nerf.NGPField.encode_directions`; float16 under :attr:`half_precision`).
 
-        With ``reuse`` the last camera rays' encoding is kept and handed back while :meth:`render` is given the very
-        same directions tensor, unchanged since (same ``_version``), for the same field, field config and precision:
-        a still camera (a viewer's, a benchmark's) then skips the encoding's ~40 small elementwise operations and
-        its cast over every ray each frame. The tensor itself is held, so its memory cannot pass to another tensor
-        that would then be taken for it. Inference-mode tensors keep no ``_version``, so theirs is never reused.
+        With ``reuse`` the last camera rays' encoding is kept and handed back for the same field, field config and
+        precision while :meth:`render` is given the same directions: the caller's ``key`` (hashable, naming the
+        directions) equal to the last one, or, without a key, the very same tensor holding the same values as then
+        (one comparison with a copy kept of them). A still camera (a viewer's, a benchmark's) then skips the
+        encoding's ~40 small elementwise operations and its cast over every ray each frame. The tensor itself is
+        held, so its memory cannot pass to another tensor that would then be taken for it.
         """
-        reuse = reuse and not directions.is_inference()
         depends_on = (self.field, self.field.config, self.half_precision)
-        cached = self._encoded
-        if (
-            reuse
-            and cached is not None
-            and cached[0] is directions
-            and cached[1] == directions._version
-            and cached[2] == depends_on  # the field by identity, its frozen config by value
-        ):
-            return cached[3]
+        cached = self._encoded  # (directions, key, copy of the directions or None, depends_on, encoded)
+        if reuse and cached is not None and cached[3] == depends_on:  # the field by identity, its config by value
+            if key is not None:
+                same = cached[1] is not None and cached[1] == key
+            else:
+                same = cached[1] is None and cached[0] is directions and torch.equal(cached[2], directions)
+            if same:
+                return cached[4]
         with self._precision():  # once per ray, not per sample (and gathered in float16 under half precision)
             encoded = self.field.encode_directions(directions)
             if self.half_precision:
                 encoded = encoded.half()
         if reuse:
-            self._encoded = (directions, directions._version, depends_on, encoded)
+            self._encoded = (directions, key, directions.clone() if key is None else None, depends_on, encoded)
         return encoded
 
     def _precision(self):
@@ -365,6 +366,7 @@ class DeformedRenderer:
         background=(1.0, 1.0, 1.0),
         ground: GroundPlane | None = None,
         frame: DeformedFrame | None = None,
+        directions_key=None,
     ) -> dict[str, torch.Tensor]:
         """Render the body deformed by q (Eq. 19–21), optionally over a shadowed ground (Fig. 7).
 
@@ -379,6 +381,9 @@ class DeformedRenderer:
             rays: ``(origins [R, 3], unit directions [R, 3])``, metres, instead of cameras. Passing the very same
                 float32 directions tensor (on the backend device) frame after frame, unchanged, reuses its encoding
                 (:meth:`_encode`).
+            directions_key: a hashable the caller changes whenever the rays' directions change (say, the camera's
+                pose and pixel grid): the encoding of the last call's directions is reused while the key is the same,
+                without comparing the directions' values. ``None``: compare them.
             mode: ``"quadratic"`` (Eq. 20), ``"linear"`` (first-order warp) or ``"rest"`` (the undeformed NeRF,
                 :func:`pienerf.nerf.render_rays`).
             background: ``[3]`` colour behind everything.
@@ -401,7 +406,7 @@ class DeformedRenderer:
         if background.shape != (3,):
             raise ValueError(f"background must be an RGB triple, got shape {tuple(background.shape)}")
         if frame is None and not (mode == "rest" and ground is None):
-            frame = self.frame(self._check_q(q))
+            frame = self.frame(self.check_q(q))
         if mode == "rest" and ground is None:
             out = render_rays(self.field, self.grid, origins, directions, background=background, chunk=self.chunk)
             result = {"rgb": out["rgb"], "alpha": out["opacity"], "depth": out["depth"]}
@@ -411,7 +416,7 @@ class DeformedRenderer:
                 t_ground = (ground.height - origins[:, 1]) / directions[:, 1]
                 hits_plane = (directions[:, 1] < 0) & (t_ground > 0)
                 far = torch.where(hits_plane, t_ground, far)
-            color, opacity, depth = self._trace(origins, directions, far, frame, mode)
+            color, opacity, depth = self._trace(origins, directions, far, frame, mode, directions_key=directions_key)
             behind = background.expand_as(color)
             result = {"alpha": opacity, "depth": torch.where(opacity > 1e-6, depth / opacity.clamp_min(1e-6), 0.0)}
             if ground is not None:
@@ -427,7 +432,9 @@ class DeformedRenderer:
             result = {k: (v if k == "shadow_map" else v.reshape(*image_shape, *v.shape[1:])) for k, v in result.items()}
         return result
 
-    def _trace(self, origins, directions, far, frame: DeformedFrame, mode: str, camera: bool = True):
+    def _trace(
+        self, origins, directions, far, frame: DeformedFrame, mode: str, camera: bool = True, directions_key=None
+    ):
         """Premultiplied colour ``[R, 3]``, opacity ``[R]`` and ``Σ w t`` ``[R]`` of rays through the deformed body,
         marched, warped, shaded and composited in rounds (class docstring). ``camera``: these are the camera's rays,
         whose encoded directions :meth:`_encode` keeps for the next frame (the shadow map's are not)."""
@@ -441,7 +448,7 @@ class DeformedRenderer:
         aabb = frame.aabb.cpu()  # a no-op for frame's own (on the host); else one transfer per trace, not per round
         grid = frame.occupancy.view(torch.uint8)  # the same bytes: bool is stored as 0 or 1
         march = march_start(origins, directions, 0.0, far, aabb)
-        encoded = self._encode(directions, reuse=camera)
+        encoded = self._encode(directions, reuse=camera, key=directions_key)
         sums = composite_start(count, device)
         settings = dict(
             max_step=64.0 * self.min_step if c.cone_angle > 0.0 else None,
@@ -506,8 +513,8 @@ class DeformedRenderer:
         (Querying every marched sample with σ zeroed instead saves the count but not the time:
         ``docs/benchmarks.md``.)
         """
-        # the kept samples' slots of the round's [A · k], in ray order, padded to a bucketed count (_bucket)
-        padded = _compact(keep, kept, _bucket(kept) if rest.is_cuda else kept)
+        # the kept samples' slots of the round's [A · k], in ray order, padded to a bucketed count (bucket_size)
+        padded = _compact(keep, kept, bucket_size(kept) if rest.is_cuda else kept)
         index = padded[:kept]
         offsets = torch.zeros(rays.shape[0] + 1, dtype=torch.int32, device=rest.device)
         offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
@@ -571,11 +578,14 @@ class DeformedRenderer:
 
     # -- arguments -------------------------------------------------------------------------------
 
-    def _check_q(self, q: torch.Tensor) -> torch.Tensor:
+    def check_q(self, q: torch.Tensor) -> torch.Tensor:
+        """``q`` when it is the model's DOFs ``[nT, 3]``, else a ValueError naming the expected shape."""
         expected = (self.model.shape_count, 3)
         if not isinstance(q, torch.Tensor) or tuple(q.shape) != expected:
             raise ValueError(f"q must be the model's DOFs {list(expected)}, got {list(getattr(q, 'shape', []))}")
         return q.to(dtype=torch.float64, device=self.model.device)
+
+    _check_q = check_q  # the former name, kept while callers move to check_q
 
     def _rays(self, cameras, rays, view, resolution):
         device = backend.torch_device()

@@ -21,7 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from pienerf.sim.qgmls import _EXACT, QGMLSBasis, ShapeValues, _as_points, support_radii, voronoi_partition
+from pienerf.sim.qgmls import (
+    EXACT_CDIST,
+    QGMLSBasis,
+    ShapeValues,
+    as_points,
+    support_radii,
+    voronoi_partition,
+)
 
 __all__ = [
     "IntegratorPoints",
@@ -97,7 +104,7 @@ def farthest_point_sampling(points: torch.Tensor, count: int, seed_indices: torc
     Returns:
         ``[count]`` int64 indices of the picked points (seeds not included), in pick order.
     """
-    points = _as_points(points, "points")
+    points = as_points(points, "points")
     seeds = None
     if seed_indices is not None:
         seed_indices = torch.as_tensor(seed_indices, dtype=torch.int64, device=points.device).reshape(-1)
@@ -134,7 +141,7 @@ def lloyd_relaxation(
     Returns:
         ``(centres [n, 3], cell [P])``: relaxed centres and the Voronoi cell of each point under them.
     """
-    points, centres = _as_points(points, "points"), _as_points(centres, "centres").to(points.device)
+    points, centres = as_points(points, "points"), as_points(centres, "centres").to(points.device)
     weights = _as_weights(weights, points.shape[0], "weights")
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
@@ -186,11 +193,11 @@ def place_kernels(
     Returns:
         :class:`KernelSet`.
     """
-    position = _as_points(position, "position")
+    position = as_points(position, "position")
     volume = _as_weights(volume, position.shape[0], "volume")
     user = torch.zeros(0, 3, dtype=torch.float64, device=position.device)
     if user_points is not None:
-        user = _as_points(user_points, "user_points").to(position.device)
+        user = as_points(user_points, "user_points").to(position.device)
     if isinstance(count, bool) or not isinstance(count, int) or count < max(1, user.shape[0]):
         raise ValueError(f"count must be an int >= max(1, number of user kernels = {user.shape[0]}), got {count!r}")
     _check_count(count - user.shape[0], position.shape[0], "place_kernels", "particles")
@@ -249,9 +256,9 @@ def place_integrator_points(
     Returns:
         :class:`IntegratorPoints` with the kernel IPs first.
     """
-    position = _as_points(position, "position")
+    position = as_points(position, "position")
     volume = _as_weights(volume, position.shape[0], "volume")
-    kernel_centres = _as_points(kernel_centres, "kernel_centres").to(position.device)
+    kernel_centres = as_points(kernel_centres, "kernel_centres").to(position.device)
     n = kernel_centres.shape[0]
     if isinstance(count, bool) or not isinstance(count, int) or count < n:
         raise ValueError(
@@ -396,9 +403,8 @@ def _cuboids(
     centres_out, frames, extents = [], [], []
     eye = torch.eye(3, dtype=torch.float64, device=position.device)
     for rows in torch.arange(centres.shape[0], device=position.device).split(_CHUNK):
-        nearest = (
-            torch.cdist(centres[rows], position, compute_mode=_EXACT).topk(neighbours, dim=1, largest=False).indices
-        )
+        distances = torch.cdist(centres[rows], position, compute_mode=EXACT_CDIST)
+        nearest = distances.topk(neighbours, dim=1, largest=False).indices
         x, v = position[nearest], volume[nearest]  # [C, K, 3], [C, K]
         total = v.sum(1, keepdim=True).clamp_min(1e-300)
         mean = (v.unsqueeze(-1) * x).sum(1, keepdim=True) / total.unsqueeze(-1)

@@ -48,11 +48,13 @@ import torch
 
 __all__ = [
     "AFFINE_TERMS",
+    "EXACT_CDIST",
     "LINEAR_TERMS",
     "ORDERS",
     "QUADRATIC_TERMS",
     "QGMLSBasis",
     "ShapeValues",
+    "as_points",
     "mls_weight",
     "moment_matrix",
     "polynomial_terms",
@@ -78,7 +80,8 @@ _SECOND_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _SECOND_ROWS = ((4, 5, 6), (5, 7, 8), (6, 8, 9))  # quadratic term row of ∂_jk, by (j, k)
 _RCOND_MIN = 1e-10
 _CHUNK = 1024
-_EXACT = "donot_use_mm_for_euclid_dist"  # cdist by differences: exact zeros, no cancellation
+EXACT_CDIST = "donot_use_mm_for_euclid_dist"
+"""``compute_mode`` of ``torch.cdist`` that measures by differences: exact zeros, no cancellation."""
 
 
 def mls_weight(d: torch.Tensor) -> torch.Tensor:
@@ -239,7 +242,7 @@ def voronoi_partition(points: torch.Tensor, centres: torch.Tensor) -> tuple[torc
     """
     cells, distances = [], []
     for chunk in points.split(_CHUNK):
-        distance, cell = torch.cdist(chunk, centres, compute_mode=_EXACT).min(dim=1)
+        distance, cell = torch.cdist(chunk, centres, compute_mode=EXACT_CDIST).min(dim=1)
         cells.append(cell)
         distances.append(distance)
     return torch.cat(cells), torch.cat(distances)
@@ -265,7 +268,7 @@ def support_radii(centres: torch.Tensor, points: torch.Tensor, neighbours: int =
     Returns:
         ``[n]`` float64 radii, in the units of the positions.
     """
-    centres, points = _as_points(centres, "centres"), _as_points(points, "points")
+    centres, points = as_points(centres, "centres"), as_points(points, "points")
     if neighbours < 1:
         raise ValueError(f"neighbours must be >= 1, got {neighbours}")
     if not scale > 1.0:
@@ -277,7 +280,7 @@ def support_radii(centres: torch.Tensor, points: torch.Tensor, neighbours: int =
         radius = radius.scatter_reduce(0, cell, distance, reduce="amax")
     if n > 1:
         k = min(neighbours, n - 1)
-        between = torch.cdist(centres, centres, compute_mode=_EXACT)
+        between = torch.cdist(centres, centres, compute_mode=EXACT_CDIST)
         neighbour_distance = between.topk(k + 1, dim=1, largest=False).values[:, k]
         radius = torch.maximum(radius, neighbour_distance)
     if bool((radius <= 0).any()):
@@ -332,7 +335,7 @@ class QGMLSBasis:
     ):
         if order not in ORDERS:
             raise ValueError(f"unknown order {order!r}; valid orders: {', '.join(ORDERS)}")
-        centres = _as_points(centres, "centres")
+        centres = as_points(centres, "centres")
         if centres.shape[0] == 0:
             raise ValueError("QGMLSBasis needs at least one kernel centre")
         support_radius = torch.as_tensor(support_radius, dtype=torch.float64, device=centres.device)
@@ -392,7 +395,7 @@ class QGMLSBasis:
         """
         if derivatives not in (0, 1, 2):
             raise ValueError(f"derivatives must be 0, 1 or 2, got {derivatives}")
-        x = _as_points(x, "x").to(self.centres.device)
+        x = as_points(x, "x").to(self.centres.device)
         kernel, active = self._active_kernels(x)
         rows = torch.arange(x.shape[0], device=x.device).split(_CHUNK)
         parts = [self._shape_jet(x[r], kernel[r], active[r], derivatives) for r in rows]
@@ -506,7 +509,7 @@ class QGMLSBasis:
         """``[M, A]`` kernels whose support contains each point (nearest first) and the validity mask."""
         kernels, actives = [], []
         for chunk in x.split(_CHUNK):
-            ratio = torch.cdist(chunk, self.centres, compute_mode=_EXACT) / self.support_radius
+            ratio = torch.cdist(chunk, self.centres, compute_mode=EXACT_CDIST) / self.support_radius
             if self.visibility is not None:
                 ratio = torch.where(self.visibility(chunk, self.centres), ratio, torch.inf)
             count = int((ratio < 1.0).sum(1).max())
@@ -551,7 +554,9 @@ class QGMLSBasis:
         return q.reshape(self.shape_count, 3)[index.clamp_min(0)]
 
 
-def _as_points(points: torch.Tensor, name: str) -> torch.Tensor:
+def as_points(points: torch.Tensor, name: str) -> torch.Tensor:
+    """``points`` as float64 ``[N, 3]``; a ValueError naming ``name`` when the shape is another or a coordinate is
+    not finite."""
     points = torch.as_tensor(points)
     if points.dim() != 2 or points.shape[1] != 3:
         raise ValueError(f"{name} must be [N, 3], got {tuple(points.shape)}")

@@ -9,8 +9,6 @@ from apps import bench
 from apps.workloads.nerf import SMOKE_CHECKPOINTS_S, measure_startup, parse_startup_report
 from physavatar.garment import SHARED_GARMENTS
 
-pytestmark = pytest.mark.data  # the cloth and NeRF workloads read garments and the lego scene when present
-
 
 def test_copy_workloads_write_complete_records(device, tmp_path):
     path = tmp_path / "bench.json"
@@ -29,24 +27,30 @@ def test_copy_workloads_write_complete_records(device, tmp_path):
         assert r["params"]["elements"] == 1 << 20
 
 
-def test_cloth_workloads_run_with_their_reference(device, capsys):
-    """The garment workloads at smoke size, the sheet's reference (the solver on the autograd element energies)
-    included: its steps see contacts of one kind only, which the references must take. Without the shared data
-    folder the skirt's workload is skipped, with its reason, and the sheet's still runs."""
-    records = bench.main(
-        ["--workload", "cloth_step_large,cloth_step", "--device", device, "--size", "smoke", "--reps", "2"]
-    )
-    for r in records:
-        assert r["median_s"] > 0 and r["unit"] == "frames/s"
-    assert records[0]["workload"] == "cloth_step_large" and records[0]["reference_median_s"] > 0
+@pytest.mark.slow
+def test_the_sheet_workload_runs_with_its_reference(device):
+    """The sheet at smoke size with its reference (the solver on the autograd element energies): its steps see
+    contacts of one kind only, which the references must take."""
+    (record,) = bench.main(["--workload", "cloth_step_large", "--device", device, "--size", "smoke", "--reps", "1"])
+    assert record["workload"] == "cloth_step_large" and record["unit"] == "frames/s"
+    assert record["median_s"] > 0 and record["reference_median_s"] > 0
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_the_skirt_workload_runs_or_says_why_not(device, capsys):
+    """The skirt at smoke size, measured after every frame by the garment simulator's own distance kernels; without
+    the shared data folder the workload is skipped with its reason."""
+    records = bench.main(["--workload", "cloth_step", "--device", device, "--size", "smoke", "--reps", "2"])
     if SHARED_GARMENTS.is_dir():
-        assert [r["workload"] for r in records] == ["cloth_step_large", "cloth_step"]
-        skirt = records[1]  # measured after every frame by the garment simulator's own distance kernels
+        (skirt,) = records
+        assert skirt["workload"] == "cloth_step" and skirt["median_s"] > 0 and skirt["unit"] == "frames/s"
         assert skirt["realtime_factor"] == pytest.approx(0.04 / skirt["median_s"])
         assert 0 < skirt["min_distance_body"] < 0.01 and 0 < skirt["min_distance_self"] < 0.01
         assert skirt["vertices_inside_body"] == 0
         assert skirt["steps_converged"] == skirt["steps"] >= 3 and skirt["newton_iterations_total"] >= skirt["steps"]
     else:
+        assert records == []
         skipped = [line for line in capsys.readouterr().err.splitlines() if "cloth_step skipped:" in line]
         assert len(skipped) == 1 and "skirt1252.obj" in skipped[0]
         pytest.skip(skipped[0])
@@ -69,15 +73,24 @@ def test_list_names_every_workload(capsys):
         (["--reps", "1000000000"], "--reps must be between 1 and 10000, got 1000000000"),
     ],
 )
-def test_bad_input_is_one_clear_line(args, message):
+def test_bad_input_is_one_clear_line(args, message, capsys):
+    with pytest.raises(SystemExit) as stop:
+        bench.main(args)
+    assert stop.value.code == 2
+    lines = [line for line in capsys.readouterr().err.splitlines() if line.startswith("bench:")]
+    assert len(lines) == 1 and message in lines[0], lines
+    assert "copy_taichi" in lines[0] or "workload" not in message
+
+
+def test_bad_input_from_the_command_line_exits_2_with_one_line():
+    """The same refusal through ``python -m apps.bench``: the exit status and the one line a shell sees."""
     result = subprocess.run(
-        [sys.executable, "-m", "apps.bench", *args], capture_output=True, text=True, check=False
+        [sys.executable, "-m", "apps.bench", "--reps", "0"], capture_output=True, text=True, check=False
     )
     assert result.returncode == 2
     # Only the program's own line counts; libraries may warn on import on some machines.
     lines = [line for line in result.stderr.splitlines() if line.startswith("bench:")]
-    assert len(lines) == 1 and message in lines[0], result.stderr
-    assert "copy_taichi" in lines[0] or "workload" not in message
+    assert len(lines) == 1 and "--reps must be between 1 and 10000, got 0" in lines[0], result.stderr
 
 
 def test_an_unwritable_json_path_is_refused_before_any_work(tmp_path, capsys):
@@ -161,6 +174,7 @@ def test_startup_report_is_the_last_json_line():
         parse_startup_report('[Taichi] Starting\n{"other": 1}\n')
 
 
+@pytest.mark.slow  # a fresh Python process that imports torch and trains
 def test_startup_probe_trains_one_step_in_a_fresh_process(shared_data):
     """The probe's child process at smoke size on a few downscaled lego views: the phases add up to the total."""
     report = measure_startup("cpu", "smoke", shared_data / "nerf_synthetic_lego", downscale=8, max_views=9)

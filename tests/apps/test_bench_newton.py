@@ -22,6 +22,7 @@ def test_without_newton_the_workload_is_unavailable_and_names_the_fix(device, mo
 
 
 @pytest.mark.data
+@pytest.mark.slow
 def test_newton_skirt_stays_on_the_waist_and_falls(device):
     pytest.importorskip("newton", reason="NVIDIA Newton is not installed (pip install -e '.[peers]')")
     if not (SHARED_GARMENTS / "skirt1252.obj").is_file():

@@ -89,8 +89,8 @@ def test_block_sums_by_the_warp_kernel_match_torch(device):
                               MaterialModel.NEO_HOOKEAN, assembly="per_ip")
     K, S = index.shape
     blocks = torch.randn(K * S * S, 9, generator=torch.Generator().manual_seed(2), dtype=torch.float64).to(dev)
-    by_warp = integrator._sum_blocks(blocks, warp_kernel=True)
-    by_torch = integrator._sum_blocks(blocks, warp_kernel=False)
+    by_warp = integrator.sum_blocks(blocks, warp_kernel=True)
+    by_torch = integrator.sum_blocks(blocks, warp_kernel=False)
     torch.testing.assert_close(by_warp, by_torch, rtol=1e-13, atol=1e-13)
     assert by_warp.abs().sum() > 0
 
@@ -133,8 +133,8 @@ def test_float32_blocks_are_summed_in_float64(device):
     K, S = index.shape
     blocks = torch.randn(K * S * S, 9, generator=torch.Generator().manual_seed(2), dtype=torch.float32).to(dev)
     blocks[::2] *= 1e8  # large and small contributions meet in the same global blocks
-    exact = integrator._sum_blocks(blocks.to(torch.float64), warp_kernel=False)
+    exact = integrator.sum_blocks(blocks.to(torch.float64), warp_kernel=False)
     for warp_kernel in (True, False):
-        summed = integrator._sum_blocks(blocks, warp_kernel=warp_kernel)
+        summed = integrator.sum_blocks(blocks, warp_kernel=warp_kernel)
         assert summed.dtype == torch.float64
         torch.testing.assert_close(summed, exact, rtol=1e-13, atol=1e-13)

@@ -19,8 +19,9 @@ from kernels.raycast import MeshBVH, shade
 from kernels.volume_render import composite_forward, march_rays
 from kernels.warp_rays import splat_occupancy, warp_to_rest
 from pienerf.nerf.cameras import Cameras
-from pienerf.render.deformed import DeformedRenderer, GroundPlane
-from pienerf.scenes import MeshAlbedoField, scene_cameras, scene_density
+from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
+from pienerf.render.deformed import DeformedRenderer, GroundPlane, bucket_size
+from pienerf.scenes import MeshAlbedoField, scene_cameras, scene_density, scene_mesh
 from pienerf.sim.materials import Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
 from pienerf.sim.sampling import grid_sample
@@ -305,25 +306,81 @@ def test_encoded_directions_are_reused_while_the_rays_are_the_same(teapot, monke
     assert len(calls) == 1 and calls[0] is directions
     again = render(directions)
     assert len(calls) == 1, "the same unchanged directions were encoded again"
-    directions.mul_(1.0)  # same values, new _version
-    changed = render(directions)
+    directions.mul_(1.0)  # written in place, the same values
+    again_written = render(directions)
+    assert len(calls) == 1, "directions written with their own values need no new encoding"
+    directions.neg_()  # changed in place: another view through the same tensor
+    render(directions)
     assert len(calls) == 2, "directions changed in place must be encoded again"
+    directions.neg_()
+    changed = render(directions)
+    assert len(calls) == 3, "directions changed back in place must be encoded again"
     copy = directions.clone()
     other = render(copy)
-    assert len(calls) == 3 and calls[2] is copy, "another tensor must be encoded"
+    assert len(calls) == 4 and calls[3] is copy, "another tensor must be encoded"
     monkeypatch.setattr(field, "config", dataclasses.replace(field.config, sh_degree=2))
     render(copy)
-    assert len(calls) == 4, "a field config of other harmonics must encode again"
-    for out in (again, changed, other):
+    assert len(calls) == 5, "a field config of other harmonics must encode again"
+    for out in (again, again_written, changed, other):
         for key in ("rgb", "alpha", "depth"):
             assert torch.equal(out[key], first[key]), key
 
     ground = GroundPlane(extent=0.9, shadow_resolution=16)
     shadowed = render(copy, ground=ground)
-    assert len(calls) == 5 and calls[4] is not copy, "only the shadow map's rays are encoded"
+    assert len(calls) == 6 and calls[5] is not copy, "only the shadow map's rays are encoded"
     render(copy, ground=ground)
-    assert len(calls) == 6 and calls[5] is not copy, "the shadow map's rays must not evict the camera's encoding"
+    assert len(calls) == 7 and calls[6] is not copy, "the shadow map's rays must not evict the camera's encoding"
     assert torch.equal(render(copy, ground=ground)["rgb"], shadowed["rgb"])
+
+
+def test_a_directions_key_names_the_rays_whose_encoding_is_reused(teapot, monkeypatch):
+    """With a key the caller names the directions: the same key reuses the encoding without looking at the values,
+    another key (or none after a key) encodes them again."""
+    model, field, renderer, q = teapot
+    renderer = DeformedRenderer(field, renderer.grid, model)
+    calls = []
+    encode = field.encode_directions
+    monkeypatch.setattr(field, "encode_directions", lambda d: calls.append(d) or encode(d))
+    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 16, fov=0.9)
+    origins, directions = (t.to(backend.torch_device()).contiguous() for t in cameras.rays(0))
+    frame = renderer.frame(q)
+
+    def render(rays_directions, key):
+        return renderer.render(q, rays=(origins, rays_directions), frame=frame, directions_key=key)
+
+    first = render(directions, ("view", 0))
+    same = render(directions.clone(), ("view", 0))
+    assert len(calls) == 1, "the same key must reuse the encoding"
+    assert torch.equal(same["rgb"], first["rgb"])
+    render(directions, ("view", 1))
+    assert len(calls) == 2, "another key must encode again"
+    render(directions, None)
+    assert len(calls) == 3, "no key after a key must encode again"
+
+
+def test_float16_copies_follow_the_fields_weights(teapot):
+    """Under half precision the renderer queries float16 copies of the field's MLPs; weights loaded into the field
+    afterwards are copied again, so the next image is that of a renderer built after the change."""
+    model, _, _, q = teapot
+    if backend.torch_device().type != "cuda":
+        pytest.skip("the float16 copies of the MLPs are made on CUDA only")
+    lo, hi = scene_mesh("teapot").bounds
+    aabb = torch.stack([lo - 0.05, hi + 0.05])
+    torch.manual_seed(0)
+    field = NGPField(NGPConfig(), aabb).to(backend.torch_device())
+    grid = OccupancyGrid.for_field(field)  # fully occupied: every sample is queried
+    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 16, fov=0.9)
+    renderer = DeformedRenderer(field, grid, model, half_precision=True)
+    with torch.no_grad():
+        before = renderer.render(q, cameras)["rgb"]
+        weights = {name: value.clone() for name, value in field.state_dict().items()}
+        weights["encoding.table"].fill_(1.0)  # an opaque body: every feature 1, ...
+        weights["density_mlp.2.weight"].fill_(1.0)  # ... every hidden unit adding to the density
+        field.load_state_dict(weights)
+        after = renderer.render(q, cameras)["rgb"]
+        fresh = DeformedRenderer(field, grid, model, half_precision=True).render(q, cameras)["rgb"]
+    assert float((after - before).abs().max()) > 1e-2, "the new weights must change the image"
+    torch.testing.assert_close(after, fresh, rtol=0, atol=1e-3)  # float16 products in either renderer
 
 
 def _light_cosine(ground: GroundPlane) -> float:
@@ -349,10 +406,8 @@ def test_bad_arguments_raise_clear_errors(teapot):
 def test_bucketed_sample_counts_are_few_and_close():
     """The sample count a round queries is padded to one of 8 sizes an octave: never below the count, at most an
     eighth (or 128) above it, so the field's products see few shapes."""
-    from pienerf.render.deformed import _bucket
-
     counts = list(range(1, 5000)) + [10**5 + 7, 2**20 - 1, 2**20, 3 * 10**6 + 11]
     for count in counts:
-        padded = _bucket(count)
+        padded = bucket_size(count)
         assert count <= padded <= max(count + 127, count * 9 // 8 + 1), (count, padded)
-    assert len({_bucket(c) for c in range(2**16, 2**17)}) <= 9
+    assert len({bucket_size(c) for c in range(2**16, 2**17)}) <= 9

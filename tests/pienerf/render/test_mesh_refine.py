@@ -75,6 +75,7 @@ def test_split_long_edges_names_bad_input():
         split_long_edges(big, faces, max_edge=1e-3, max_vertices=1000)
 
 
+@pytest.mark.slow
 def test_refined_teapot_preview_renders_the_rest_state_alike_and_bends_the_rod(device):
     plain = Simulation(SimulationConfig.create("teapot", **SMOKE_TEAPOT))
     refined = Simulation(SimulationConfig.create("teapot", mesh_edge_fraction=0.125, **SMOKE_TEAPOT))
