@@ -41,11 +41,11 @@ class ClothConfig:
         elastic_projection: how the membrane and bending Hessians are made PSD for the Newton direction:
             ``"abs"`` flips their negative eigenvalues (absolute eigenvalue filtering, Chen et al. 2024), ``"clamp"``
             zeroes them (the nearest PSD matrix, as C-IPC); ``"auto"``: abs for dynamic steps, clamp for static
-            solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance
-            sooner, while clamping converges faster in the tail of a tight solve. Measured with both filtered by
-            their eigen-decomposition: the 3757-vertex ``skirt7271`` on the walking mannequin, default tolerance,
-            first 4 frames: 40 Newton iterations with abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric
-            of :mod:`physavatar.estimate` at 1e-4 m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip
+            solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance sooner,
+            while clamping converges faster in the tail of a tight solve. Measured with both filtered by their
+            eigen-decomposition: the 3757-vertex ``skirt7271`` on the walking mannequin, default tolerance, first 4
+            frames: 40 Newton iterations with abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric of
+            :mod:`physavatar.fit.estimation` at 1e-4 m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip
             to 1e-9 m: clamp converges, abs does not within 30 iterations. Barrier Hessians are always clamped.
         membrane_filter: how ``elastic_projection`` is applied to the membrane: ``"eigen"`` to the eigenvalues of
             each 9×9 Hessian (a batched eigensolver), ``"stress"`` in the kernel, in closed form, to the stress in
