@@ -73,9 +73,9 @@ class ClothConfig:
             margins of skirt7271 walking on each device (``docs/benchmarks.md``).
         psd_precision: the dtype in which the PSD filter decomposes the float64 membrane and bending Hessians
             (the barrier's always in float64: :func:`physavatar.cloth.newton_system.filtered_elements`): ``"float32"``,
-            ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi takes about two thirds of
-            the time in float32 and the walk of skirt7271 took as many Newton iterations (489) and 43.4 against
-            46.1 ms a frame on an H100; float64 on the CPU. The filtered matrices stay PSD in either
+            ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi is faster in float32 and the
+            walk of skirt7271 took as many Newton iterations (489) in less time (``docs/benchmarks.md``); float64
+            on the CPU. The filtered matrices stay PSD in either
             (:func:`kernels.element_terms.project_psd`).
     """
 

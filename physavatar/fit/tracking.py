@@ -30,8 +30,7 @@ from kernels import backend
 from physavatar.capture import Capture
 from physavatar.fit.gaussians import GaussianAppearance, Subdivision, photometric_loss, render_mesh_gaussians
 
-__all__ = ["TrackConfig", "TrackResult",
-    "mesh_neighbours", "isometry_loss", "normal_loss", "track"]
+__all__ = ["TrackConfig", "TrackResult", "isometry_loss", "mesh_neighbours", "normal_loss", "track"]
 
 
 @dataclass(frozen=True)

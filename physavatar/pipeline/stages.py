@@ -140,7 +140,7 @@ class PipelineConfig:
         frames: captured frames used for tracking and fitting (paper: 24), at ``fps``.
         eval_frames: frames of the unseen evaluation motion.
         fps: frames per second; one simulation step per frame (paper: Δt = 0.04 s).
-        fit_motion, eval_motion: names in :data:`physavatar.motion.MOTIONS`.
+        fit_motion, eval_motion: names in :data:`physavatar.body.MOTIONS`.
         cameras: cameras on the capture ring.
         image_size: ``(width, height)`` of every view, px.
         ao_samples: sky-occlusion rays per pixel of the capture.
