@@ -34,6 +34,8 @@ SMOKE_NOTE = (
 
 
 def report_markdown(report: dict, out: Path) -> str:
+    """``report.md``'s text: the scores of every method (Table 2's columns), then the estimate and the appearance
+    read from ``out``'s ``estimate/`` and ``appearance/`` folders where they exist."""
     lines = [
         f"# PhysAvatar on a synthetic capture: evaluation on the unseen motion '{report['motion']}'",
         "",
@@ -86,6 +88,7 @@ def report_markdown(report: dict, out: Path) -> str:
 
 
 def plot_report(report: dict, folder: Path, staging: Staging) -> None:
+    """``chamfer.png`` (Chamfer distance per frame and method) and ``metrics.png`` (the mean scores) in ``folder``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -125,6 +128,8 @@ def plot_report(report: dict, folder: Path, staging: Staging) -> None:
 
 
 def plot_estimation(runs: dict, truth: FabricParameters, path: Path, staging: Staging) -> None:
+    """The estimators' iterations (``runs``: name → :class:`~physavatar.fit.EstimationResult`) against ``truth``, as
+    one PNG at ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
