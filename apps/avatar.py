@@ -42,9 +42,8 @@ from pathlib import Path
 from kernels import backend
 from physavatar import pipeline
 from physavatar import simulate as sim
-from physavatar.body import Body
+from physavatar.body import MOTIONS, Body, load_bvh, named_motion
 from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
-from physavatar.motion import MOTIONS, load_bvh, named_motion
 from physavatar.result_files import Staging
 from pienerf.output_files import atomic_path, check_output_folder
 

@@ -12,10 +12,9 @@ from dataclasses import dataclass
 
 import torch
 
-from physavatar.body import Body
+from physavatar.body import Body, Motion
 from physavatar.cloth import ClothControl
 from physavatar.garment import boundary_targets
-from physavatar.motion import Motion
 
 __all__ = ["BodyDriver"]
 

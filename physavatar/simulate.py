@@ -35,11 +35,10 @@ import trimesh
 
 from kernels import backend
 from kernels.raycast import MeshBVH, shade
-from physavatar.body import Body
+from physavatar.body import Body, Motion
 from physavatar.cloth import ClothConfig, ClothStepReport, SolverCloth
 from physavatar.drive import BodyDriver
 from physavatar.garment import Garment, select_boundary
-from physavatar.motion import Motion
 from physavatar.result_files import Staging, write_arrays, write_json
 
 __all__ = [

@@ -5,9 +5,9 @@
 reference is the dense torch rasterizer of :mod:`kernels.reference.gaussian_splat`, timed only at smoke size (it holds a
 ``views × pixels × Gaussians`` tensor).
 
-``track_frame``: one frame of tracking as the pipeline tracks the skirt (:func:`physavatar.track.track`'s per-frame
-optimisation with :data:`physavatar.pipeline.COARSE_MESH_TRACKING`: 16 Gaussians per face, the default 100 Adam
-iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations).
+``track_frame``: one frame of tracking as the pipeline tracks the skirt (:func:`physavatar.fit.tracking.track`'s
+per-frame optimisation with :data:`physavatar.pipeline.COARSE_MESH_TRACKING`: 16 Gaussians per face, the default 100
+Adam iterations of vertices and colours against 8 views at 256×256; smoke: 4 views at 64×64 and 10 iterations).
 
 ``estimate``: the analytic Levenberg–Marquardt fit of (κ_s, κ_b) to 24 exact frames of the skirt on the walking
 mannequin (smoke: 6 frames of a coarser skirt), from κ_s = 2, κ_b = 0.5; ``extra`` holds the time at which both
@@ -24,16 +24,15 @@ from apps.workloads import Case, workload
 from kernels import backend
 from kernels.gaussian_splat import rasterize_gaussians
 from kernels.reference.gaussian_splat import rasterize_gaussians_torch
-from physavatar.body import Body
+from physavatar.body import Body, walk
 from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
 from physavatar.drive import BodyDriver
-from physavatar.estimate import SYNTHETIC_FABRIC, EstimationProblem, FabricParameters, estimate_analytic, rollout
+from physavatar.fit.estimation import SYNTHETIC_FABRIC, EstimationProblem, FabricParameters, estimate_analytic, rollout
+from physavatar.fit.gaussians import GaussianAppearance, face_frames, project_gaussians
+from physavatar.fit.tracking import track
 from physavatar.garment import procedural_skirt, select_boundary
-from physavatar.gaussians import GaussianAppearance, face_frames, project_gaussians
-from physavatar.motion import walk
 from physavatar.pipeline import COARSE_MESH_TRACKING
 from physavatar.simulate import simulate
-from physavatar.track import track
 
 _VIEWS = {"smoke": (2, 64), "paper": (8, 512), "large": (16, 512)}
 

@@ -55,12 +55,11 @@ from kernels import backend
 from kernels.element_terms import ElementTerms
 from kernels.reference import cloth as ref
 from kernels.shell import plane_stress_lame
-from physavatar.body import Body
+from physavatar.body import Body, walk
 from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth, bending_stiffness
 from physavatar.cloth.contact import garment_distances
 from physavatar.drive import BodyDriver
 from physavatar.garment import SHARED_GARMENTS, load_garment, place_on_body, select_boundary
-from physavatar.motion import walk
 from physavatar.shapes import grid_sheet, icosphere
 
 _SKIRT = {"smoke": "skirt1252.obj", "paper": "skirt7271.obj", "large": "skirt7271.obj"}

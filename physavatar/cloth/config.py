@@ -41,11 +41,11 @@ class ClothConfig:
         elastic_projection: how the membrane and bending Hessians are made PSD for the Newton direction:
             ``"abs"`` flips their negative eigenvalues (absolute eigenvalue filtering, Chen et al. 2024), ``"clamp"``
             zeroes them (the nearest PSD matrix, as C-IPC); ``"auto"``: abs for dynamic steps, clamp for static
-            solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance
-            sooner, while clamping converges faster in the tail of a tight solve. Measured with both filtered by
-            their eigen-decomposition: the 3757-vertex ``skirt7271`` on the walking mannequin, default tolerance,
-            first 4 frames: 40 Newton iterations with abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric
-            of :mod:`physavatar.estimate` at 1e-4 m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip
+            solves. Flipping keeps the curvature of buckling modes and gets a dynamic step to C-IPC's tolerance sooner,
+            while clamping converges faster in the tail of a tight solve. Measured with both filtered by their
+            eigen-decomposition: the 3757-vertex ``skirt7271`` on the walking mannequin, default tolerance, first 4
+            frames: 40 Newton iterations with abs, 66 with clamp; a 280-vertex skirt of the synthetic fabric of
+            :mod:`physavatar.fit.estimation` at 1e-4 m/s, 5 frames: 143 with abs, 99 with clamp; a static hanging strip
             to 1e-9 m: clamp converges, abs does not within 30 iterations. Barrier Hessians are always clamped.
         membrane_filter: how ``elastic_projection`` is applied to the membrane: ``"eigen"`` to the eigenvalues of
             each 9×9 Hessian (a batched eigensolver), ``"stress"`` in the kernel, in closed form, to the stress in
@@ -73,9 +73,9 @@ class ClothConfig:
             margins of skirt7271 walking on each device (``docs/benchmarks.md``).
         psd_precision: the dtype in which the PSD filter decomposes the float64 membrane and bending Hessians
             (the barrier's always in float64: :func:`physavatar.cloth.newton_system.filtered_elements`): ``"float32"``,
-            ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi takes about two thirds of
-            the time in float32 and the walk of skirt7271 took as many Newton iterations (489) and 43.4 against
-            46.1 ms a frame on an H100; float64 on the CPU. The filtered matrices stay PSD in either
+            ``"float64"`` or ``"auto"``: float32 on CUDA, where cuSOLVER's batched Jacobi is faster in float32 and the
+            walk of skirt7271 took as many Newton iterations (489) in less time (``docs/benchmarks.md``); float64
+            on the CPU. The filtered matrices stay PSD in either
             (:func:`kernels.element_terms.project_psd`).
     """
 

@@ -232,10 +232,10 @@ class ClothContact:
         Pairs that share a vertex or whose vertices are all kinematic (``kinematic [V + B]`` bool) are left out;
         the edge pairs' mollifier thresholds come from the rest positions ``x_rest [V + B, 3]`` (m).
 
-        Which side of a garment–body request is the tree was measured (skirt7271 on the walking mannequin, an
-        H100): body triangles walk the garment's points (0.29 ms; as fast the other way round), while the garment's
-        triangles walk the body's points (0.10 ms against 0.63) and its edges the body's edges (0.33 against 1.10):
-        the body primitives inside the skirt's box but far from the cloth made the long walks."""
+        Which side of a garment–body request is the tree was measured (skirt7271 on the walking mannequin; figures
+        in ``docs/benchmarks.md``): body triangles walk the garment's points (as fast as the other way round), while
+        the garment's triangles walk the body's points and its edges the body's edges, several times faster than the
+        reverse: the body primitives inside the skirt's box but far from the cloth made the long walks."""
         dhat = self.config.contact_distance
         lo, hi = lo.contiguous(), hi.contiguous()
         points, triangles, edges, body_points, body_edges = self._boxes_trees(lo, hi)
@@ -261,7 +261,7 @@ class ClothContact:
         On CUDA the trees outlive the search and are refitted (:meth:`kernels.broad_phase.BoxTree.refit`), built
         anew every :data:`TREE_REBUILD` searches: garment and body keep their neighbourhoods, so a hierarchy stays
         good for many frames (the walks of a six-searches-old refitted tree took as long as a fresh one's), and
-        three builds cost a search of skirt7271 1.6 ms on an H100 where refits cost 0.1 ms. On the
+        builds cost a search of skirt7271 many times what refits do (``docs/benchmarks.md``). On the
         CPU (Warp's SAH build on one thread) they are built every time: the pairs come in the tree's order, which a
         refit would change, and the CPU's results stay those of a fresh build."""
         if lo.device.type != "cuda" or self._trees is None or self._tree_age >= TREE_REBUILD:

@@ -259,8 +259,8 @@ def _sparse_spd_solve(h: scipy.sparse.csc_matrix, rhs):
     """Solve ``h x = rhs`` for a sparse SPD ``h`` by SuperLU with a symmetric ordering and diagonal pivots.
 
     The fill-reducing ordering of ``hᵀ + h`` only pays off if the factorisation keeps to the diagonal: with
-    SuperLU's default threshold pivoting it swaps rows of this matrix, loses the ordering and fills in ~8× slower
-    (``docs/benchmarks.md``). An SPD matrix needs no pivoting, so the diagonal pivot
+    SuperLU's default threshold pivoting it swaps rows of this matrix, loses the ordering and fills in, several times
+    slower (``docs/benchmarks.md``). An SPD matrix needs no pivoting, so the diagonal pivot
     threshold is 0 (a Cholesky-like LDU); should a pivot vanish in floating point, the solve is repeated with
     SuperLU's partial pivoting.
     """

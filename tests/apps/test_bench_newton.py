@@ -9,10 +9,9 @@ import warp as wp
 
 from apps import bench
 from apps.workloads import WorkloadUnavailable, load_all
-from physavatar.body import Body
+from physavatar.body import Body, walk
 from physavatar.drive import BodyDriver
 from physavatar.garment import SHARED_GARMENTS, load_garment, place_on_body, select_boundary
-from physavatar.motion import walk
 
 
 def test_without_newton_the_workload_is_unavailable_and_names_the_fix(device, monkeypatch):

@@ -3,10 +3,9 @@
 import pytest
 import torch
 
-from physavatar.body import Body
+from physavatar.body import Body, walk
 from physavatar.drive import BodyDriver
 from physavatar.garment import boundary_targets, procedural_skirt, select_boundary
-from physavatar.motion import walk
 
 
 @pytest.fixture(scope="module")

@@ -12,9 +12,8 @@ import pytest
 import torch
 
 from apps import avatar
-from physavatar.body import Body
+from physavatar.body import Body, walk
 from physavatar.garment import DEFAULT_GARMENT, load_garment, place_on_body, procedural_skirt, select_boundary
-from physavatar.motion import walk
 from physavatar.simulate import simulate, write_meshes, write_npz, write_stats_json
 
 pytestmark = pytest.mark.data  # the default garment comes from the shared folder when present
@@ -71,7 +70,7 @@ _CPU_SKIRT = """
 import sys, numpy as np
 from physavatar.body import Body
 from physavatar.garment import load_garment, place_on_body, procedural_skirt, select_boundary
-from physavatar.motion import walk
+from physavatar.body import walk
 from physavatar.simulate import simulate
 body = Body.mannequin(spacing=0.03)
 skirt = place_on_body(load_garment(sys.argv[1]), body)

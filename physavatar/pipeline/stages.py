@@ -47,8 +47,7 @@ import numpy as np
 import torch
 
 from kernels.image_metrics import psnr, ssim
-from physavatar.appearance import albedo_error, estimate_appearance, relight
-from physavatar.body import Body
+from physavatar.body import MOTIONS, Body, named_motion
 from physavatar.capture import (
     CameraRig,
     Lighting,
@@ -60,7 +59,8 @@ from physavatar.capture import (
 )
 from physavatar.cloth import ClothConfig
 from physavatar.drive import BodyDriver
-from physavatar.estimate import (
+from physavatar.fit.appearance import albedo_error, estimate_appearance, relight
+from physavatar.fit.estimation import (
     SYNTHETIC_FABRIC,
     EstimationProblem,
     FabricParameters,
@@ -68,16 +68,15 @@ from physavatar.estimate import (
     estimate_finite_differences,
     rollout,
 )
-from physavatar.evaluate import geometry_scores, lbs_garment
+from physavatar.fit.evaluation import geometry_scores, lbs_garment
+from physavatar.fit.tracking import TrackConfig, track
 from physavatar.garment import procedural_skirt, select_boundary
-from physavatar.motion import MOTIONS, named_motion
-from physavatar.result_files import Staging, save_figure, write_arrays, write_json, write_png, write_text
-from physavatar.track import TrackConfig, track
+from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
+from physavatar.result_files import Staging, write_arrays, write_json, write_text
 
 __all__ = [
     "COARSE_MESH_TRACKING",
     "OUTPUTS",
-    "SMOKE_NOTE",
     "STAGES",
     "PipelineConfig",
     "PipelineInterrupted",
@@ -92,10 +91,8 @@ __all__ = [
 ]
 
 BODY_COLOR = (0.78, 0.74, 0.68)
-SMOKE_NOTE = (
-    "Smoke size: this run only checks that every stage works. Its scores and estimates (e.g. the κ_s error) come from "
-    "a few frames of tiny images and a handful of iterations and mean nothing; run without --smoke for results."
-)
+
+
 STAGES = ("capture", "track", "estimate", "appearance", "animate", "evaluate")
 OUTPUTS: dict[str, tuple[str, ...]] = {
     "capture": (
@@ -143,7 +140,7 @@ class PipelineConfig:
         frames: captured frames used for tracking and fitting (paper: 24), at ``fps``.
         eval_frames: frames of the unseen evaluation motion.
         fps: frames per second; one simulation step per frame (paper: Δt = 0.04 s).
-        fit_motion, eval_motion: names in :data:`physavatar.motion.MOTIONS`.
+        fit_motion, eval_motion: names in :data:`physavatar.body.MOTIONS`.
         cameras: cameras on the capture ring.
         image_size: ``(width, height)`` of every view, px.
         ao_samples: sky-occlusion rays per pixel of the capture.
@@ -249,8 +246,8 @@ def _scene(config: PipelineConfig):
 
 def _forward(config: PipelineConfig, body: Body, garment, boundary: torch.Tensor, motion: str, frames: int):
     """The garment at rest driven through the first ``frames`` poses of ``motion``: the body's skinned vertices and the
-    boundary's targets, as a problem :func:`physavatar.estimate.rollout` simulates (its reference is a placeholder,
-    the rest shape). Returns ``(problem, clip)``."""
+    boundary's targets, as a problem :func:`physavatar.fit.estimation.rollout` simulates (its reference is a
+    placeholder, the rest shape). Returns ``(problem, clip)``."""
     clip = named_motion(motion, body.skeleton, frames - 1, config.fps)
     driver = BodyDriver.from_motion(body, clip, garment.vertices, boundary, frames - 1)
     problem = EstimationProblem(
@@ -457,7 +454,7 @@ def estimate(
     report["recovered_by"] = best.method
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "estimate.json", report, staging)
-    _plot_estimation(runs, truth, folder / "estimate.png", staging)
+    plot_estimation(runs, truth, folder / "estimate.png", staging)
     return folder
 
 
@@ -510,7 +507,7 @@ def appearance(
         BODY_COLOR,
         ao_samples=config.ao_samples,
     )
-    _write_strip(images[0], folder / "relit.png", staging)
+    write_strip(images[0], folder / "relit.png", staging)
     _say(
         progress, "appearance", f"albedo error {record['albedo_error']:.4f} (baked {record['baked_albedo_error']:.4f})"
     )
@@ -619,9 +616,9 @@ def evaluate(
         }
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "report.json", report, staging)
-    write_text(folder / "report.md", _markdown(report, Path(out)), staging)
-    _plot_report(report, folder, staging)
-    _write_strip(
+    write_text(folder / "report.md", report_markdown(report, Path(out)), staging)
+    plot_report(report, folder, staging)
+    write_strip(
         torch.cat([renders[k][-1][:1] for k in ("truth", "lbs", "without_physics", "full")]),
         folder / "comparison.png",
         staging,
@@ -651,130 +648,3 @@ def run(
             raise PipelineInterrupted(name, STAGES[:index]) from stop
         _say(progress, name, f"done in {time.perf_counter() - start:.1f} s")
     return out / "evaluate" / "report.md"
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# Reports and plots
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def _markdown(report: dict, out: Path) -> str:
-    lines = [
-        f"# PhysAvatar on a synthetic capture: evaluation on the unseen motion '{report['motion']}'",
-        "",
-        *([f"**{SMOKE_NOTE}**", ""] if report.get("smoke_size") else []),
-        f"{report['frames']} frames. CD: Chamfer distance (×10⁻⁶ m², point-to-surface); F-score at τ = 1 mm; "
-        "PSNR/SSIM of renders against renders of the truth under the capture's light.",
-        "",
-        "| method | CD (×10⁻⁶ m²) ↓ | F-score ↑ | mean vertex error (mm) ↓ | PSNR (dB) ↑ | SSIM ↑ |",
-        "|---|---|---|---|---|---|",
-    ]
-    for entry in report["methods"].values():
-        lines.append(
-            f"| {entry['label']} | {entry['chamfer'] * 1e6:.3f} | {entry['fscore']:.3f} | "
-            f"{entry['vertex_error'] * 1e3:.2f} | {entry['psnr']:.2f} | {entry['ssim']:.4f} |"
-        )
-    estimate_path = out / "estimate" / "estimate.json"
-    if estimate_path.is_file():
-        est = json.loads(estimate_path.read_text())
-        truth = est["truth"]
-        lines += [
-            "",
-            f"## Physics estimation (reference: {est['reference']} meshes; ρ fixed at {truth['density']:g} kg/m³)",
-            "",
-            "Only κ_s/ρ and κ_b/ρ are identifiable from geometry: scaling ρ, κ_s and κ_b together scales the "
-            "incremental potential and leaves the motion unchanged.",
-            "",
-            f"Truth: κ_s = {truth['kappa_s']:.4f}, κ_b = {truth['kappa_b']:.4f}.",
-            "",
-            "| method | iterations | simulations | time (s) | κ_s | κ_b | error κ_s/ρ | error κ_b/ρ |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
-        for name, m in est["methods"].items():
-            lines.append(
-                f"| {name} | {m['iterations']} | {m['simulations']} | {m['seconds']:.1f} | "
-                f"{m['final']['kappa_s']:.4f} | {m['final']['kappa_b']:.4f} | "
-                f"{m['ratio_errors']['kappa_s_over_rho'] * 100:+.1f} % | "
-                f"{m['ratio_errors']['kappa_b_over_rho'] * 100:+.1f} % |"
-            )
-    look_path = out / "appearance" / "appearance.json"
-    if look_path.is_file():
-        look = json.loads(look_path.read_text())
-        lines += [
-            "",
-            "## Appearance",
-            "",
-            f"Mean albedo error: {look['albedo_error']:.4f} estimated against {look['baked_albedo_error']:.4f} for the "
-            "texture baked from the Gaussians' colours (shadows included).",
-        ]
-    return "\n".join(lines) + "\n"
-
-
-def _plot_report(report: dict, folder: Path, staging: Staging) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
-    for key, entry in report["methods"].items():
-        if key == "without_appearance":
-            continue
-        ax.plot(np.array(entry["chamfer_per_frame"]) * 1e6, label=entry["label"])
-    ax.set_xlabel("frame")
-    ax.set_ylabel("Chamfer distance (×10⁻⁶ m²)")
-    ax.set_yscale("symlog", linthresh=1e-3)
-    ax.legend()
-    ax.set_title(f"garment geometry on the unseen motion '{report['motion']}'")
-    fig.tight_layout()
-    try:
-        save_figure(fig, folder / "chamfer.png", staging)
-    finally:
-        plt.close(fig)
-
-    labels = [e["label"] for e in report["methods"].values()]
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
-    for ax, (metric, title, scale) in zip(
-        axes,
-        (("chamfer", "CD (×10⁻⁶ m²) ↓", 1e6), ("fscore", "F-score ↑", 1.0), ("psnr", "PSNR (dB) ↑", 1.0)),
-        strict=True,
-    ):
-        ax.bar(range(len(labels)), [e[metric] * scale for e in report["methods"].values()], color="#4c72b0")
-        ax.set_xticks(range(len(labels)), labels, rotation=20, ha="right", fontsize=8)
-        ax.set_title(title)
-    fig.tight_layout()
-    try:
-        save_figure(fig, folder / "metrics.png", staging)
-    finally:
-        plt.close(fig)
-
-
-def _plot_estimation(runs: dict, truth: FabricParameters, path: Path, staging: Staging) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(1, 3, figsize=(11, 3.2))
-    for name, result in runs.items():
-        axes[0].plot([p.kappa_s for p in result.history], label=name)
-        axes[1].plot([p.kappa_b for p in result.history], label=name)
-        axes[2].plot(result.loss, label=name)
-    axes[0].axhline(truth.kappa_s, color="k", ls="--", lw=0.8)
-    axes[1].axhline(truth.kappa_b, color="k", ls="--", lw=0.8)
-    for ax, title in zip(axes, ("κ_s", "κ_b", "Eq. 6 loss (m²)"), strict=True):
-        ax.set_title(title)
-        ax.set_xlabel("iteration")
-    axes[2].set_yscale("log")
-    axes[0].legend(fontsize=7)
-    fig.tight_layout()
-    try:
-        save_figure(fig, path, staging)
-    finally:
-        plt.close(fig)
-
-
-def _write_strip(images: torch.Tensor, path: Path, staging: Staging) -> None:
-    """Views ``[N, H, W, 3]`` side by side as one PNG, written through ``staging``."""
-    strip = torch.cat(list(images), dim=1).clamp(0, 1)
-    write_png(path, (strip * 255).round().to(torch.uint8).numpy(), staging)

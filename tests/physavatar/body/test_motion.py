@@ -6,8 +6,7 @@ import pytest
 import torch
 
 from kernels import backend
-from physavatar.body import Skeleton
-from physavatar.motion import MOTIONS, Motion, jump, load_bvh, named_motion, save_bvh, turn, walk
+from physavatar.body import MOTIONS, Motion, Skeleton, jump, load_bvh, named_motion, save_bvh, turn, walk
 
 MAX_ANGULAR_SPEED = 20.0  # rad/s, about the peak knee extension speed of a human jump
 

@@ -19,6 +19,7 @@ import physavatar.result_files as result_files
 from apps import avatar
 from physavatar import pipeline
 from physavatar.capture import CameraRig, Capture, Lighting, load_capture, write_capture
+from physavatar.pipeline import stages
 from physavatar.result_files import save_figure, write_arrays, write_json, write_png, write_text
 from pienerf.output_files import atomic_path
 
@@ -239,7 +240,7 @@ def test_ctrl_c_in_the_pipeline_keeps_the_finished_stages_and_exits_130(device, 
     def interrupted_tracking(*args, **options):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "track", interrupted_tracking)
+    monkeypatch.setattr(stages, "track", interrupted_tracking)
     assert avatar.main(["pipeline", "--smoke", "--out", str(out), "--device", device]) == 130
     error = capsys.readouterr().err
     last = error.strip().splitlines()[-1]
@@ -290,7 +291,7 @@ def test_ctrl_c_in_a_stage_command_keeps_the_earlier_files_and_exits_130(device,
     def interrupted_rendering(*args, **options):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(pipeline, "render_capture", interrupted_rendering)
+    monkeypatch.setattr(stages, "render_capture", interrupted_rendering)
     assert avatar.main(["capture", "--smoke", "--out", str(out), "--device", device]) == 130
     error = capsys.readouterr().err
     assert error.strip().splitlines()[-1] == (

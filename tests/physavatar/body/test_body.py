@@ -9,7 +9,8 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from kernels import backend
-from physavatar.body import JOINT_NAMES, Body, Skeleton, _bone_distances, axis_angle_to_matrix
+from physavatar.body import JOINT_NAMES, Body, Skeleton, axis_angle_to_matrix
+from physavatar.body.mannequin import bone_distances
 
 TRUNK = ("pelvis", "spine1", "spine2", "spine3", "neck", "head")
 
@@ -120,7 +121,7 @@ def test_weights_are_a_partition_of_unity_led_by_the_nearest_bone(mannequin):
     assert (w >= 0).all()
     assert torch.allclose(w.sum(1), torch.ones(len(w), dtype=w.dtype), atol=1e-12)
     assert ((w > 0).sum(1) <= 4).all()
-    nearest = _bone_distances(mannequin.vertices.numpy(), 1.0).argmin(1)
+    nearest = bone_distances(mannequin.vertices.numpy(), 1.0).argmin(1)
     assert np.array_equal(w.argmax(1).numpy(), nearest)
     assert (w.max(1).values >= 0.25).all()
     hand = mannequin.vertices[:, 0] > 0.6

@@ -63,7 +63,7 @@ __all__ = [
     "baked_face_colors",
     "estimate_appearance",
     "gather_garment_pixels",
-    "photometric_loss",
+    "albedo_loss",
     "relight",
     "render_pixels",
 ]
@@ -250,7 +250,7 @@ def render_pixels(
     return albedo[pixels.face] * irradiance
 
 
-def photometric_loss(
+def albedo_loss(
     albedo: torch.Tensor, ambient: torch.Tensor, sun: torch.Tensor, pixels: GarmentPixels, kind: str = "l2"
 ) -> torch.Tensor:
     """Eq. 8's loss as a mean over pixels and channels: squared (``"l2"``) or absolute (``"l1"``) residuals."""
@@ -435,7 +435,7 @@ def _adam(pixels: GarmentPixels, initial: torch.Tensor, with_sun: bool, steps: i
     history = []
     for _ in range(steps):
         optimizer.zero_grad()
-        value = photometric_loss(albedo, ambient, sun, pixels, kind)
+        value = albedo_loss(albedo, ambient, sun, pixels, kind)
         value.backward()
         history.append(float(value.detach()))
         optimizer.step()
@@ -445,7 +445,7 @@ def _adam(pixels: GarmentPixels, initial: torch.Tensor, with_sun: bool, steps: i
             ambient.clamp_(min=1e-6)
             sun.clamp_(min=0.0)
     with torch.no_grad():
-        history.append(float(photometric_loss(albedo, ambient, sun, pixels, kind)))
+        history.append(float(albedo_loss(albedo, ambient, sun, pixels, kind)))
     return albedo.detach(), ambient.detach(), sun.detach(), history
 
 

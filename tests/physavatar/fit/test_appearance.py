@@ -6,16 +6,16 @@ import pytest
 import torch
 
 from kernels.image_metrics import psnr
-from physavatar.appearance import (
+from physavatar.capture import CameraRig, Lighting, dressed_scene, garment_albedo, render_capture, shade_mesh
+from physavatar.fit.appearance import (
     GarmentPixels,
     albedo_error,
+    albedo_loss,
     estimate_appearance,
     gather_garment_pixels,
-    photometric_loss,
     relight,
     render_pixels,
 )
-from physavatar.capture import CameraRig, Lighting, dressed_scene, garment_albedo, render_capture, shade_mesh
 from physavatar.shapes import grid_sheet, icosphere
 
 FRAMES = 3
@@ -169,7 +169,7 @@ def test_render_pixels_gradients_match_the_analytic_ones():
     albedo = torch.rand(faces, 3, dtype=torch.float64, generator=generator).requires_grad_(True)
     ambient = torch.tensor([0.4, 0.5, 0.6], dtype=torch.float64, requires_grad=True)
     sun = torch.tensor([0.7, 0.6, 0.5], dtype=torch.float64, requires_grad=True)
-    photometric_loss(albedo, ambient, sun, pixels, "l2").backward()
+    albedo_loss(albedo, ambient, sun, pixels, "l2").backward()
     irradiance = pixels.ao.double()[:, None] * ambient.detach() + pixels.sun.double()[:, None] * sun.detach()
     residual = albedo.detach()[pixels.face] * irradiance - pixels.rgb.double()
     weight = 2.0 / residual.numel()

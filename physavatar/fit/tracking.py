@@ -1,7 +1,7 @@
 """Mesh tracking with mesh-aligned Gaussians (PhysAvatar §3.1, Eq. 1–4).
 
 Given a multi-view video and the garment mesh at its first frame, recover the garment's vertices in every frame.
-One Gaussian rides on each face (:mod:`physavatar.gaussians`); rendering them and comparing with the images moves
+One Gaussian rides on each face (:mod:`physavatar.fit.gaussians`); rendering them and comparing with the images moves
 the vertices. The body is part of the avatar's mesh as in the paper, but its vertices are known in every frame
 (the skinned body, as the paper's SMPL-X fit): its Gaussians occlude the garment and are never moved.
 
@@ -28,9 +28,9 @@ import torch
 
 from kernels import backend
 from physavatar.capture import Capture
-from physavatar.gaussians import GaussianAppearance, Subdivision, photometric_loss, render_mesh_gaussians
+from physavatar.fit.gaussians import GaussianAppearance, Subdivision, photometric_loss, render_mesh_gaussians
 
-__all__ = ["TrackConfig", "TrackResult", "isometry_loss", "normal_loss", "track"]
+__all__ = ["TrackConfig", "TrackResult", "isometry_loss", "mesh_neighbours", "normal_loss", "track"]
 
 
 @dataclass(frozen=True)
@@ -151,7 +151,7 @@ def normal_loss(vertices: torch.Tensor, faces: torch.Tensor, face_pairs: torch.T
     return 2.0 * (1.0 - (n[face_pairs[:, 0]] * n[face_pairs[:, 1]]).sum(1)).sum() / faces.shape[0]
 
 
-def _mesh_neighbours(faces: torch.Tensor, vertex_count: int):
+def mesh_neighbours(faces: torch.Tensor, vertex_count: int):
     """Directed 1-ring edges ``[E, 2]``, vertex degrees ``[V]`` and edge-adjacent face pairs ``[P, 2]``."""
     f = faces.shape[0]
     half = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
@@ -239,7 +239,7 @@ def track(
     faces = faces.long().to(device)
     fine = Subdivision.of(faces, v, config.face_subdivisions)
     all_faces = torch.cat([fine.faces, body_faces.long().to(device) + fine.vertex_count(v)])
-    edges, degree, face_pairs = _mesh_neighbours(faces, v)
+    edges, degree, face_pairs = mesh_neighbours(faces, v)
     edges, degree, face_pairs = edges.to(device), degree.to(device), face_pairs.to(device)
     x1 = first_vertices.to(device, torch.float64)
     rest_lengths = torch.linalg.norm(x1[edges[:, 0]] - x1[edges[:, 1]], dim=1)

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
-from physavatar.estimate import FabricParameters, estimate_analytic, rollout
-from physavatar.track import TrackConfig, track
-from tests.physavatar.test_estimate import _swing
+from physavatar.fit.estimation import FabricParameters, estimate_analytic, rollout
+from physavatar.fit.tracking import TrackConfig, track
+from tests.physavatar.fit.test_estimation import swing
 
 FRAMES = 24  # the paper's sequence length for material estimation (Appendix A.3.1)
 TRUTH = FabricParameters(320.0, 0.3, 6.0)  # a stretchy fabric, stiff in bending
@@ -37,7 +37,7 @@ def test_estimation_from_tracked_meshes_recovers_both_ratios(device):
     5 % without cost (``iso_tolerance``): under Eq. 2 alone the tracked sheet kept 0.03 % of its 0.7 % mean stretch
     and κ_s/ρ came out 15 % high at 100 iterations a frame (at these 60: κ_s/ρ 6 %, κ_b/ρ 7.5 % high).
     """
-    problem = _swing(FRAMES)
+    problem = swing(FRAMES)
     truth_frames = rollout(problem, TRUTH, device=device).frames
     first = truth_frames[0]
     eyes = [[0.0, 0.2, 0.9], [0.7, 0.1, 0.6], [-0.7, 0.1, 0.6], [0.0, -0.3, 0.8]]

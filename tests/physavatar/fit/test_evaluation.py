@@ -5,10 +5,9 @@ import math
 import pytest
 import torch
 
-from physavatar.body import Body
-from physavatar.evaluate import chamfer_fscore, geometry_scores, lbs_garment, surface_samples
+from physavatar.body import Body, raise_arms
+from physavatar.fit.evaluation import chamfer_fscore, geometry_scores, lbs_garment, surface_samples
 from physavatar.garment import procedural_skirt
-from physavatar.motion import raise_arms
 from physavatar.shapes import grid_sheet
 
 

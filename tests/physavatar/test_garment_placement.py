@@ -1,4 +1,13 @@
-"""A garment that is not worn by the body is refused with the measured distance and a fix, never simulated falling."""
+"""A garment that is not worn by the body is refused with the measured distance and a fix, never simulated falling.
+
+``apps.avatar simulate`` refuses such a garment before the work (exit status 2) and counts the steps whose line
+search stalled in one it simulates.
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -6,6 +15,8 @@ import trimesh
 
 from physavatar.body import Body
 from physavatar.garment import MAX_GAP, load_garment, place_on_body, procedural_skirt
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -67,3 +78,45 @@ def test_a_garment_auto_rescaled_off_the_body_is_refused_naming_the_rescale(skir
     kept = load_garment(path, scale=1)  # the fix the message names keeps the file's coordinates
     assert kept.notes == ()
     torch.testing.assert_close(kept.vertices, 0.2 * skirt.vertices, atol=1e-6, rtol=0)
+
+
+def _write(skirt, path: Path, vertices: torch.Tensor) -> Path:
+    trimesh.Trimesh(vertices.numpy(), skirt.faces.numpy(), process=False).export(path)
+    return path
+
+
+def _simulate(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "apps.avatar", "simulate", *args], cwd=ROOT, capture_output=True, text=True, check=False
+    )
+
+
+def test_a_garment_five_metres_away_exits_2_naming_the_problem(skirt, tmp_path):
+    path = _write(skirt, tmp_path / "far.obj", skirt.vertices + torch.tensor([5.0, 0.0, 0.0], dtype=torch.float64))
+    result = _simulate("--garment", str(path), "--frames", "1", "--out", str(tmp_path / "out"), "--device", "cpu")
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and "far: the garment is not on the body" in lines[0], result.stderr
+    assert "does not overlap the body's" in lines[0] and "--garment-scale" in lines[0]
+    assert "step 1/" not in result.stderr and not (tmp_path / "out").exists()
+
+
+def test_a_bad_garment_scale_is_refused_before_the_work(skirt, tmp_path):
+    path = _write(skirt, tmp_path / "skirt.obj", skirt.vertices)
+    result = _simulate("--garment", str(path), "--garment-scale", "-3", "--out", str(tmp_path), "--device", "cpu")
+    assert result.returncode == 2
+    assert "--garment-scale must be 'auto' or a positive number (1 for a file in metres), got '-3'" in result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["skirt.obj"]
+
+
+def test_a_worn_garment_reports_its_stalled_steps(skirt, tmp_path):
+    path = _write(skirt, tmp_path / "skirt.obj", skirt.vertices)
+    out = tmp_path / "out"
+    result = _simulate("--garment", str(path), "--smoke", "--out", str(out), "--device", "cpu")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads((out / "stats.json").read_text())["summary"]
+    stalled = summary["line_search_stalled_steps"]
+    steps = json.loads((out / "stats.json").read_text())["steps"]
+    assert stalled == sum(s["line_search_stalled"] for s in steps)
+    assert summary["unconverged_steps"] == sum(not s["converged"] for s in steps)
+    assert f"{stalled} of {len(steps)} steps ended with a stalled line search" in result.stdout

@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from physavatar.capture import CameraRig, Lighting, garment_albedo, render_capture
-from physavatar.gaussians import GaussianAppearance, Subdivision, face_frames
+from physavatar.fit.gaussians import GaussianAppearance, Subdivision, face_frames
+from physavatar.fit.tracking import TrackConfig, isometry_loss, mesh_neighbours, normal_loss, track
 from physavatar.shapes import grid_sheet
-from physavatar.track import TrackConfig, _mesh_neighbours, isometry_loss, normal_loss, track
 
 
 def _sheet():
@@ -23,7 +23,7 @@ def _rotation_z(angle: float) -> torch.Tensor:
 
 def test_losses_vanish_on_rigid_motions_and_grow_with_stretch_and_folds():
     vertices, faces = _sheet()
-    edges, degree, pairs = _mesh_neighbours(faces, vertices.shape[0])
+    edges, degree, pairs = mesh_neighbours(faces, vertices.shape[0])
     assert edges.shape[0] == 2 * (2 * 8 * 9 + 8 * 8)  # directed: horizontal, vertical and diagonal edges
     assert pairs.shape[0] == 2 * 8 * 9 + 8 * 8 - 4 * 8  # interior edges (all but the rim) join two faces
     rest = torch.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], dim=1)
@@ -40,7 +40,7 @@ def test_losses_vanish_on_rigid_motions_and_grow_with_stretch_and_folds():
 def test_isometry_tolerance_lets_a_fabric_stretch_and_still_stops_distortion():
     """With a tolerance τ, length changes up to τ of the rest length are free and larger ones cost what exceeds τ."""
     vertices, faces = _sheet()
-    edges, degree, _ = _mesh_neighbours(faces, vertices.shape[0])
+    edges, degree, _ = mesh_neighbours(faces, vertices.shape[0])
     rest = torch.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], dim=1)
     scale = torch.tensor([1.02, 1.0, 1.0], dtype=torch.float64)  # a 2 % stretch along x
     assert float(isometry_loss(vertices * scale, rest, edges, degree)) > 1e-5

@@ -5,8 +5,7 @@ import random
 import pytest
 import torch
 
-from physavatar.body import Skeleton
-from physavatar.motion import MAX_BVH_FRAMES, Motion, load_bvh, save_bvh, walk
+from physavatar.body import MAX_BVH_FRAMES, Motion, Skeleton, load_bvh, save_bvh, walk
 
 
 @pytest.fixture(scope="module")

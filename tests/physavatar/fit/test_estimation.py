@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from physavatar.cloth import ClothControl, ClothState, SolverCloth
-from physavatar.estimate import (
+from physavatar.fit.estimation import (
     FD_STEPS,
     SYNTHETIC_FABRIC,
     EstimationProblem,
@@ -35,7 +35,7 @@ def _one_torch_thread():
     torch.set_num_threads(threads)
 
 
-def _swing(frames: int, newton_tolerance: float | None = None, n: int = 8, length: float = 0.4) -> EstimationProblem:
+def swing(frames: int, newton_tolerance: float | None = None, n: int = 8, length: float = 0.4) -> EstimationProblem:
     """A ``length``-square sheet of the synthetic fabric hanging from its top edge, which swings out of the sheet's
     plane (8 cm at 1.5 Hz) and along it (3 cm at 1 Hz): gravity stretches it, the swing bends it. The reference is
     a placeholder (the sheet at rest); tests replace it. Comparisons with finite differences of rollouts tighten
@@ -86,7 +86,7 @@ def _relative_error(a: torch.Tensor, b: torch.Tensor) -> float:
 
 def test_scaling_density_and_stiffnesses_together_leaves_the_motion_unchanged(device):
     """Only κ_s/ρ and κ_b/ρ are identifiable: (ρ, κ_s, κ_b) and (2ρ, 2κ_s, 2κ_b) give the same rollout."""
-    problem = _swing(12)
+    problem = swing(12)
     base = FabricParameters(300.0, 1.5, 1.2)
     frames = rollout(problem, base, device=device).frames
     doubled = rollout(problem, FabricParameters(600.0, 3.0, 2.4), device=device).frames
@@ -98,7 +98,7 @@ def test_scaling_density_and_stiffnesses_together_leaves_the_motion_unchanged(de
 
 def test_sensitivities_match_central_differences(device):
     """∂x/∂θ carried through the implicit steps equals central differences of whole rollouts, for ρ, κ_s, κ_b."""
-    problem = _swing(12, newton_tolerance=1e-7)
+    problem = swing(12, newton_tolerance=1e-7)
     params = FabricParameters(320.0, 1.0, 1.0)
     frames, sens = rollout(problem, params, sensitivities=True, parameters=ALL, device=device)
     assert sens.shape == (*frames.shape, 3)
@@ -133,7 +133,7 @@ def test_sensitivities_with_body_contact_match_central_differences(device):
 
 
 def test_sensitivity_step_checks_its_inputs(device):
-    problem = _swing(3)
+    problem = swing(3)
     solver = SolverCloth(problem.rest_vertices, problem.faces, SYNTHETIC_FABRIC, problem.body_faces)
     state = solver.initial_state()
     out = ClothState(state.x.clone(), state.v.clone())
@@ -151,7 +151,7 @@ def test_sensitivity_step_checks_its_inputs(device):
 
 def test_levenberg_marquardt_recovers_the_ratios_from_a_two_fold_error(device):
     """From exact meshes, starting 2× off in both stiffnesses, the analytic method recovers κ_s/ρ and κ_b/ρ."""
-    problem = _swing(12)
+    problem = swing(12)
     truth = FabricParameters(320.0, 1.5, 0.8)
     problem = dataclasses.replace(problem, reference=rollout(problem, truth, device=device).frames)
     start = FabricParameters(320.0, 3.0, 0.4)
@@ -170,7 +170,7 @@ def test_levenberg_marquardt_recovers_the_ratios_from_a_two_fold_error(device):
 
 def test_finite_difference_adam_lowers_the_loss(device):
     """Algorithm 1 (forward differences, Adam): a few iterations already move toward the truth and lower Eq. 6."""
-    problem = _swing(10)
+    problem = swing(10)
     truth = FabricParameters(320.0, 1.0, 1.0)
     problem = dataclasses.replace(problem, reference=rollout(problem, truth, device=device).frames)
     start = FabricParameters(320.0, 2.0, 0.5)
@@ -193,7 +193,7 @@ def test_finite_difference_adam_lowers_the_loss(device):
 
 
 def test_problem_from_a_simulation_result(device):
-    problem = _swing(4)
+    problem = swing(4)
     frames = rollout(problem, FabricParameters.from_config(SYNTHETIC_FABRIC), device=device).frames
     result = SimulationResult(
         frames, problem.body_frames, problem.faces, problem.body_faces, problem.boundary_index, FPS, [], []
@@ -204,7 +204,7 @@ def test_problem_from_a_simulation_result(device):
 
 
 def test_bad_input_raises_clear_errors():
-    problem = _swing(6)
+    problem = swing(6)
     fields = {f.name: getattr(problem, f.name) for f in dataclasses.fields(problem)}
 
     def build(**changes):

@@ -1,0 +1,38 @@
+"""The body that drives and collides with the garment, and the motions that drive it (PhysAvatar §3.2, Appendix A.3).
+
+PhysAvatar uses SMPL-X as the body collider {V^C_t, F^C} and animates it with linear blend skinning (LBS);
+SMPL-X is not freely licensed, so this package builds a procedural mannequin in its place:
+
+- :mod:`~physavatar.body.skeleton`: the 22 SMPL joints, their rest pose, and linear blend skinning;
+- :mod:`~physavatar.body.mannequin`: the skin's signed distance field, its marching-tetrahedra mesh and its
+  skinning weights;
+- :mod:`~physavatar.body.body`: :class:`Body`, the skinned, closed collider mesh;
+- :mod:`~physavatar.body.motion`: procedural motions (walk, turn, raise arms, jump);
+- :mod:`~physavatar.body.bvh`: BVH motion files, read and written.
+"""
+
+from physavatar.body.body import Body
+from physavatar.body.bvh import BVH_NAME_MAPS, MAX_BVH_FRAMES, REQUIRED_JOINTS, load_bvh, save_bvh
+from physavatar.body.motion import MOTIONS, Motion, jump, named_motion, raise_arms, turn, walk
+from physavatar.body.skeleton import JOINT_NAMES, JOINT_PARENTS, Skeleton, axis_angle_to_matrix, linear_blend_skinning
+
+__all__ = [
+    "BVH_NAME_MAPS",
+    "JOINT_NAMES",
+    "JOINT_PARENTS",
+    "MAX_BVH_FRAMES",
+    "MOTIONS",
+    "REQUIRED_JOINTS",
+    "Body",
+    "Motion",
+    "Skeleton",
+    "axis_angle_to_matrix",
+    "jump",
+    "linear_blend_skinning",
+    "load_bvh",
+    "named_motion",
+    "raise_arms",
+    "save_bvh",
+    "turn",
+    "walk",
+]
