@@ -38,7 +38,7 @@ from pienerf.render.previews import (
 from pienerf.reports import TimeBreakdown
 from pienerf.scenes import SCENES, scene_density, scene_mesh
 from pienerf.sim.cut import CutPlane
-from pienerf.sim.density import MeshDensity
+from pienerf.sim.density import MeshDensity, load_mesh_file
 from pienerf.sim.materials import MATERIAL_MODELS, Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
 from pienerf.sim.picking import DragConfig, DragController, Interaction, PickHit
@@ -287,9 +287,7 @@ class Simulation:
             self.mesh_vertices, self.mesh_faces, self.mesh_colors = mesh.vertices, mesh.faces, mesh.colors
             self.density = scene_density(name)
         else:
-            import trimesh  # deferred: only mesh-file scenes need it
-
-            loaded = trimesh.load(name, force="mesh")
+            loaded = load_mesh_file(name)
             self.density = MeshDensity(loaded)
             self.mesh_vertices = torch.as_tensor(loaded.vertices, dtype=torch.float32)
             self.mesh_faces = torch.as_tensor(loaded.faces, dtype=torch.int32)
