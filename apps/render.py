@@ -71,6 +71,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import json
 import os
 import signal
 import sys
@@ -96,6 +97,7 @@ from pienerf.scenario import (
     measure_warp_error,
     merged_breakdown,
     prepare_nerf,
+    require_video_encoder,
     run_metrics,
     sample_volumes,
     scenario_cameras,
@@ -336,12 +338,59 @@ def _finished_metrics(runs: list[ScenarioRun], written: dict) -> dict:
     }
 
 
+OWNED_FILES = (
+    "metrics.json",
+    "video.mp4",
+    ".video.partial*.mp4",
+    "volume_bars.png",
+    "volume_bars.json",
+    "time_breakdown.png",
+    "time_breakdown.json",
+    "frames/frame_*.png",
+    "depth/*.npy",
+    "depth/*.png",
+    "shadow/*.png",
+)
+"""The files a render writes under ``--out`` (glob patterns): an earlier render's are removed before a new one
+starts, so that its frames never sit beside the new ones."""
+
+
+def clear_earlier_render(out: Path, log=print) -> int:
+    """Remove the files of an earlier render in ``out`` (:data:`OWNED_FILES`) and say so, naming the earlier
+    scenario where its ``metrics.json`` tells it; files no render writes are left, and their count said. Returns how
+    many files were removed."""
+    if not out.is_dir():
+        return 0
+    earlier = None
+    try:
+        earlier = json.loads((out / "metrics.json").read_text()).get("scenario")
+    except (OSError, ValueError, AttributeError):
+        pass
+    owned = {path for pattern in OWNED_FILES for path in out.glob(pattern) if path.is_file()}
+    for path in owned:
+        path.unlink()
+    others = [path for path in out.rglob("*") if path.is_file()]
+    if owned:
+        of = f" of scenario {earlier!r}" if earlier else ""
+        log(f"{out}: removed {len(owned)} files of an earlier render{of} (frames, video, depth, metrics, charts)")
+    if others:
+        example = others[0].relative_to(out)
+        log(f"{out}: also holds {len(others)} files no render writes (such as {example}); left as they are")
+    return len(owned)
+
+
 def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str | None = None) -> dict:
     """Run every variant of a checked scenario and write the outputs under ``out``; returns the metrics.
 
-    ``cache_dir`` holds the scene renders and fitted NeRFs (default ``$PIE_CACHE_DIR``, else
-    ``~/.cache/pie-physavatar``).
+    The files of an earlier render in ``out`` are removed first (:func:`clear_earlier_render`). ``cache_dir`` holds
+    the scene renders and fitted NeRFs (default ``$PIE_CACHE_DIR``, else ``~/.cache/pie-physavatar``).
+
+    Raises:
+        ScenarioError: the scenario asks for a video that cannot be written here (:func:`require_video_encoder`),
+            before any work.
     """
+    require_video_encoder(scenario)
+    clear_earlier_render(out, log)
     out.mkdir(parents=True, exist_ok=True)
     name = scenario.get("name", "scenario")
     metrics = {
@@ -402,12 +451,20 @@ def render_scenario(scenario: dict, out: Path, log=print, cache_dir: Path | str 
 
 
 def _failure_summary(solver: dict) -> str:
-    """One line: how many steps ended with a failed line search, by kind, and how many did not converge."""
+    """One line: how many steps ended with a failed line search, by kind, and how many did not converge, with the
+    largest last Newton update of those against the tolerance and the iteration cap."""
     kinds = ", ".join(f"{kind}: {count}" for kind, count in solver["line_search_failures"].items())
+    far = ""
+    if solver["unconverged_steps"] and solver.get("largest_unconverged_update_m") is not None:
+        far = (
+            f" (largest last update {solver['largest_unconverged_update_m']:.3g} m against the tolerance "
+            f"{solver['newton_tolerance_m']:.3g} m, at most {solver['newton_iterations_cap']} Newton iterations a step)"
+        )
     return (
         f"{solver['line_search_failed_steps']} of {solver['steps']} steps ended with a failed line search"
         + (f" ({kinds})" if kinds else "")
         + f", {solver['unconverged_steps']} did not converge"
+        + far
     )
 
 
@@ -437,6 +494,9 @@ def _main(argv: list[str] | None) -> int:
     )
     parser.add_argument("--smoke", action="store_true", help="apply the scenario's [smoke] table (tests)")
     parser.add_argument(
+        "--frames", type=int, default=None, help="frames after the first, replacing the scenario's (and --smoke's)"
+    )
+    parser.add_argument(
         "--cache-dir",
         type=Path,
         default=None,
@@ -444,7 +504,8 @@ def _main(argv: list[str] | None) -> int:
     )
     args = parser.parse_args(argv)
     try:
-        scenario = load_scenario(args.scenario, smoke=args.smoke)
+        scenario = load_scenario(args.scenario, smoke=args.smoke, frames=args.frames)
+        require_video_encoder(scenario)
         check_output_folder(args.out)
         if args.cache_dir is not None:
             check_output_folder(args.cache_dir, "--cache-dir")

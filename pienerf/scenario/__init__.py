@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import importlib.util
 import math
+import re
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -48,6 +49,7 @@ __all__ = [
     "MAX_STEPS",
     "MAX_TIME",
     "NERF_WARPS",
+    "OFFLINE_NEWTON_ITERATIONS",
     "OUTPUT_DEFAULTS",
     "ScenarioError",
     "ScenarioNerf",
@@ -65,6 +67,7 @@ __all__ = [
     "nerf_fit",
     "prepare_nerf",
     "progress_log",
+    "require_video_encoder",
     "run_metrics",
     "sample_volumes",
     "scenario_cameras",
@@ -110,6 +113,17 @@ MAX_COORDINATE = 1e4
 """Largest magnitude (m, or N for a force) of a 3-vector's entry."""
 MAX_TIME = 1e5
 """Latest time (s) a keyframe, force window, release or volume sample may name."""
+
+OFFLINE_NEWTON_ITERATIONS = 50
+"""Newton iterations a scenario's step may take unless ``solver.newton_iterations`` says otherwise: a scripted
+figure iterates each step to ``SolverConfig.newton_tolerance`` instead of taking the interactive viewer's one
+iteration (:data:`pienerf.session.INTERACTIVE_SOLVER`). Line-searched Newton converges quadratically near the
+solution, so a step that has not met the tolerance after 50 iterations is stalled (the summary line reports its last
+update against the tolerance), not slow."""
+
+_NAME = re.compile(r"[A-Za-z0-9_-]+")
+"""A name that becomes part of a file name (a variant's): letters, digits, ``_`` and ``-``, so it cannot climb out
+of the output folder (``../``) or name a hidden file."""
 
 _PIXELS = _Number(int, 1, 8192, "px")
 _KERNELS = _Number(int, 1, 100_000)
@@ -269,8 +283,18 @@ def _check_table(table: dict, section: str, where: str) -> None:
                 _check_table(item, key, f"{path}[{i}]")
 
 
-def load_scenario(path: Path | str, smoke: bool = False) -> dict:
-    """Read and check a scenario; with ``smoke``, the ``[smoke]`` table shrinks it."""
+def load_scenario(path: Path | str, smoke: bool = False, frames: int | None = None) -> dict:
+    """Read and check a scenario; with ``smoke``, the ``[smoke]`` table shrinks it; ``frames`` (1 to
+    :data:`MAX_FRAMES`) then replaces its frame count, volume samples past the end taken at the last frame.
+
+    Raises:
+        ScenarioError: the file, a key or ``frames`` is bad; the message names it and the fix.
+    """
+    integer = isinstance(frames, int) and not isinstance(frames, bool)
+    if frames is not None and not (integer and 1 <= frames <= MAX_FRAMES):
+        raise ScenarioError(
+            f"--frames must be an integer in [1, {MAX_FRAMES}] (frames after the first), got {frames!r}"
+        )
     path = Path(path)
     if not path.is_file():
         raise ScenarioError(
@@ -304,6 +328,15 @@ def load_scenario(path: Path | str, smoke: bool = False) -> dict:
         if "nerf" in shrink and "nerf" in scenario:
             scenario["nerf"] = {**scenario["nerf"], **shrink["nerf"]}
         _shrink_volume_samples(scenario)
+    if frames is not None:
+        solver = scenario.setdefault("solver", {})
+        if frames * solver.get("substeps", 1) > MAX_STEPS:
+            raise ScenarioError(
+                f"--frames {frames} × 'solver.substeps' is {frames * solver.get('substeps', 1)} solver steps; at most "
+                f"{MAX_STEPS}: lower --frames"
+            )
+        solver["frames"] = frames
+        _shrink_volume_samples(scenario, f"--frames {frames}")
     return scenario
 
 
@@ -414,8 +447,18 @@ def _check_structure(scenario: dict) -> None:
                 f"at most {MAX_STEPS}: lower the frames or the substeps"
             )
     _check_strings(scenario.get("outputs", {}).get("modes", ["mesh"]), "outputs.modes", empty=False)
+    names = []
     for i, variant in enumerate(scenario.get("variants", [])):
         _check_strings(variant.get("modes", ["mesh"]), f"variants[{i}].modes", empty=False)
+        name = variant.get("name", "default")
+        if not _NAME.fullmatch(name):
+            raise ScenarioError(
+                f"'variants[{i}].name' {name!r} becomes part of the output file names: use only letters, digits, "
+                "'_' and '-' (put free text in 'label')"
+            )
+        if name in names:
+            raise ScenarioError(f"'variants[{i}].name' {name!r} repeats an earlier variant's; give each its own name")
+        names.append(name)
     cameras = scenario["cameras"]
     kind = cameras.get("type", "orbit")
     if kind == "orbit":
@@ -484,16 +527,16 @@ def _check_structure(scenario: dict) -> None:
                 raise ScenarioError(f"'volume_samples[{i}]' needs '{key}' (time in s and a label for the bar chart)")
 
 
-def _shrink_volume_samples(scenario: dict) -> None:
-    """At smoke size, volume samples past the shortened run are taken at its last frame, their labels saying so, so
-    the volume bars still show every requested sample."""
+def _shrink_volume_samples(scenario: dict, why: str = "smoke") -> None:
+    """At smoke size (or under ``--frames``), volume samples past the shortened run are taken at its last frame,
+    their labels saying so (``why``), so the volume bars still show every requested sample."""
     solver = scenario.get("solver", {})
     frame_dt = solver.get("dt", SimulationConfig.dt)
     end = solver.get("frames", 30) * frame_dt
     for spec in scenario.get("volume_samples", []):
         if spec.get("time", 0.0) > end + 0.5 * frame_dt:  # the schema check made spec a table, time a number
             label = spec.get("label", f"t = {spec['time']:g} s")
-            spec.update(time=end, label=f"{label} (smoke: at {end:.2g} s)")
+            spec.update(time=end, label=f"{label} ({why}: at {end:.2g} s)")
 
 
 def unmet_requirement(scenario: dict) -> str | None:
@@ -553,17 +596,26 @@ class StepTally:
         line_search_failures: steps whose last line search failed, by kind (``"inversion"``, ``"no decrease"``,
             ``"not finite"``).
         stuck: steps whose first line search already failed, so the body did not move in them at all.
+        tolerance: the solver's ``newton_tolerance`` (m), the bound a converged step's last update meets.
+        iteration_cap: the solver's ``newton_iterations``, the most a step may take.
+        largest_unconverged_update: the largest last Newton update (|J Δq|, m) of the unconverged steps: how far
+            from convergence they ended, against ``tolerance``.
     """
 
     steps: int = 0
     unconverged: int = 0
     line_search_failures: dict[str, int] = field(default_factory=dict)
     stuck: int = 0
+    tolerance: float | None = None
+    iteration_cap: int | None = None
+    largest_unconverged_update: float = 0.0
 
     def add(self, report: QGMLSStepReport) -> None:
         """Count one step's report."""
         self.steps += 1
         self.unconverged += not report.converged
+        if not report.converged:
+            self.largest_unconverged_update = max(self.largest_unconverged_update, float(report.last_update))
         if report.line_search_failure:
             kind = report.line_search_failure
             self.line_search_failures[kind] = self.line_search_failures.get(kind, 0) + 1
@@ -592,6 +644,9 @@ class StepTally:
             "line_search_failed_steps": self.failed,
             "line_search_failures": dict(sorted(self.line_search_failures.items())),
             "stuck_steps": self.stuck,
+            "newton_tolerance_m": self.tolerance,
+            "newton_iterations_cap": self.iteration_cap,
+            "largest_unconverged_update_m": self.largest_unconverged_update if self.unconverged else None,
             "wrong_result": self.wrong_result(),
         }
 
@@ -783,7 +838,7 @@ def build_run(
         gravity=tuple(solver["gravity"]) if "gravity" in solver else None,
         rayleigh_alpha=solver.get("rayleigh_alpha"),
         rayleigh_beta=solver.get("rayleigh_beta"),
-        newton_iterations=solver.get("newton_iterations"),
+        newton_iterations=solver.get("newton_iterations", OFFLINE_NEWTON_ITERATIONS),
         floor=scene.get("floor"),
         default_pins=scene.get("default_pins"),
         drag_stiffness=solver.get("drag_stiffness"),
@@ -811,6 +866,7 @@ def build_run(
         raise ScenarioError("at most one [[drags]] entry: the drag is the mouse; use [[forces]] for further loads")
     volumes = VolumeHistory(simulation.volume())
     run_modes = list(variant.get("modes", modes if modes is not None else ["mesh"]))
+    solver_config = simulation.config.solver
     return ScenarioRun(
         variant.get("name", "default"),
         simulation,
@@ -819,6 +875,7 @@ def build_run(
         run_modes,
         variant.get("label", variant.get("name", "default")),
         warp_error=_warp_error_probe(scenario, simulation, nerf, run_modes),
+        tally=StepTally(tolerance=solver_config.newton_tolerance, iteration_cap=solver_config.newton_iterations),
     )
 
 
@@ -877,6 +934,21 @@ def apply_controls(run: ScenarioRun, scenario: dict, t: float) -> None:
 
 OUTPUT_DEFAULTS = {"frames": True, "mp4": True, "depth": False, "shadow": False, "fps": 30.0, "modes": ["mesh"]}
 """What a scenario writes unless its ``[outputs]`` table says otherwise."""
+
+
+def require_video_encoder(scenario: dict) -> None:
+    """Refuse, before any work, a scenario whose outputs include ``video.mp4`` where it cannot be written: imageio
+    writes an MP4 through the imageio-ffmpeg package, and without it picks another writer by the file name that
+    fails at the first frame, after the simulation work.
+
+    Raises:
+        ScenarioError: ``outputs.mp4`` is on and imageio-ffmpeg is not installed; the message names both fixes.
+    """
+    if scenario_outputs(scenario)["mp4"] and importlib.util.find_spec("imageio_ffmpeg") is None:
+        raise ScenarioError(
+            "'outputs.mp4' = true needs the imageio-ffmpeg package to write video.mp4, and it is not installed: "
+            "pip install imageio-ffmpeg, or set mp4 = false under [outputs] to write the frames only"
+        )
 
 
 def scenario_outputs(scenario: dict) -> dict:

@@ -4,6 +4,7 @@ scenarios (the lego, Fig. 8) fit their NeRF into the test's cache and render it 
 from __future__ import annotations
 
 import errno
+import importlib.util
 import json
 import os
 import signal
@@ -362,3 +363,81 @@ def test_a_sound_render_reports_no_failed_line_search(device, tmp_path, capsys):
     assert metrics["wrong_results"] == {}
     solver = metrics["variants"]["default"]["solver"]
     assert solver["steps"] == 2 and solver["line_search_failures"] == {} and solver["wrong_result"] is None
+    # an offline step iterates to the tolerance, not the interactive viewer's one Newton iteration
+    assert solver["unconverged_steps"] == 0
+    assert solver["newton_iterations_cap"] == scenario_module.OFFLINE_NEWTON_ITERATIONS
+    assert metrics["time_breakdown"]["newton_iterations"] > metrics["time_breakdown"]["steps"]
+
+
+def test_a_missing_video_encoder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *args: None if name == "imageio_ffmpeg" else find_spec(name, *args)
+    )
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path, mp4=True)), "--out", str(out), "--device", "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert "pip install imageio-ffmpeg" in error and "mp4 = false" in error
+    assert not out.exists()  # refused before any work
+    # without a video, the same machine renders the frames
+    assert render.main([str(_tiny_scenario(tmp_path, frames=1)), "--out", str(out), "--device", "cpu"]) == 0
+
+
+@pytest.mark.parametrize("name", ["../escaped", "a/b", ".hidden", "", "tab\t"])
+def test_a_variant_name_that_is_no_file_name_is_refused(tmp_path, capsys, name):
+    scenario = _tiny_scenario(tmp_path)
+    scenario.write_text(scenario.read_text() + f'[[variants]]\nname = "{name}"\n')
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--device", "cpu"]) == 2
+    assert "'variants[0].name'" in capsys.readouterr().err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["tiny.toml"]
+
+
+@pytest.mark.parametrize("frames", ["0", "-3"])
+def test_frames_below_one_are_refused(tmp_path, capsys, frames):
+    scenario = SCENARIOS[0]
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--smoke", "--frames", frames, "--device", "cpu"]) == 2
+    assert f"--frames must be an integer in [1, {scenario_module.MAX_FRAMES}]" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_frames_replace_the_smoke_length(device, tmp_path):
+    out = tmp_path / "out"
+    args = [str(_tiny_scenario(tmp_path, frames=40)), "--out", str(out), "--frames", "1", "--device", device]
+    assert render.main(args) == 0
+    assert json.loads((out / "metrics.json").read_text())["frames"] == 2
+
+
+def test_an_earlier_render_in_the_out_folder_is_cleared_and_said(device, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path, frames=3)), "--out", str(out), "--device", device]) == 0
+    (out / "notes.txt").write_text("mine")
+    other = tmp_path / "other.toml"
+    other.write_text(_tiny_scenario(tmp_path, frames=1).read_text().replace('name = "tiny"', 'name = "other"', 1))
+    capsys.readouterr()
+    assert render.main([str(other), "--out", str(out), "--device", device]) == 0
+    said = capsys.readouterr().out
+    assert "files of an earlier render of scenario 'tiny'" in said and "notes.txt" in said
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / "metrics.json").read_text())["scenario"] == "other"
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [
+        (b"", "is empty (0 bytes)"),
+        (bytes(range(256)) * 2, "holds no triangles"),
+        (b"v 0 0 0\nv 1 0 0\nv 0 nan 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n", "1 of 4 vertices with NaN"),
+    ],
+    ids=["empty", "garbage", "nan"],
+)
+def test_a_bad_mesh_scene_is_named_for_what_is_wrong(tmp_path, capsys, content, says):
+    mesh = tmp_path / "body.obj"
+    mesh.write_bytes(content)
+    scenario = _tiny_scenario(tmp_path)
+    scenario.write_text(scenario.read_text().replace('name = "jelly"', f'name = "{mesh}"'))
+    assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert says in error and "watertight" not in error
