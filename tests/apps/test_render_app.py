@@ -18,6 +18,8 @@ from matplotlib.figure import Figure
 
 from apps import render
 from pienerf import scenario as scenario_module
+from pienerf.paths import SHARED_DATA
+from pienerf.scenario import runner, schema
 
 MAX_TINY_FRAMES = 2000  # the interrupted render would take far longer than the test waits
 SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios").glob("*.toml"))
@@ -53,10 +55,13 @@ def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
     out = tmp_path / scenario.stem
     metrics = _run(scenario, out, device)
     if "skipped" in metrics:
-        assert scenario.stem == "lego" and not (scenario_module.SHARED_DATA / "nerf_synthetic_lego").is_dir()
+        assert scenario.stem == "lego" and not (SHARED_DATA / "nerf_synthetic_lego").is_dir()
         assert "nerf_synthetic_lego is absent" in metrics["skipped"]
         return
     spec = scenario_module.load_scenario(scenario, smoke=True)
+    # the scenario's own [expect] (over its [smoke.expect]) holds at smoke size
+    assert spec["expect"] and metrics["expect"]["passed"], metrics["expect"]
+    assert {check["key"] for check in metrics["expect"]["checks"]} >= set(spec["expect"])
     frames = spec["solver"]["frames"] + 1
     outputs = {"frames": True, "mp4": True, "depth": False, "shadow": False, **spec.get("outputs", {})}
     assert metrics["frames"] == frames and (out / "time_breakdown.png").is_file()
@@ -119,7 +124,7 @@ def test_label_tile_writes_the_text_into_its_corner():
     import torch
 
     tile = torch.rand(40, 120, 4)
-    labelled = render.label_tile(tile, "ARAP")
+    labelled = runner.label_tile(tile, "ARAP")
     changed = (labelled - tile).abs().amax(-1) > 2 / 255
     assert labelled.shape == tile.shape and changed[-8:, :20].float().mean() > 0.5 and not changed[:20].any()
     assert (labelled[-14:, :30, :3] < 0.1).all(-1).sum() > 10  # the black letters
@@ -131,8 +136,8 @@ def test_a_second_label_line_is_drawn_where_the_tile_has_room_for_it():
     text = "Q-GMLS: NeRF, quadratic warp\nvs mesh on rod: 24.1 dB, IoU 0.83"
     for height, lines in ((192, 2), (36, 1)):
         tile = torch.zeros(height, 256, 4)
-        boxed = (render.label_tile(tile, text)[..., 3] > 0.5).any(-1).sum()
-        one_line = (render.label_tile(tile, text.split("\n")[0])[..., 3] > 0.5).any(-1).sum()
+        boxed = (runner.label_tile(tile, text)[..., 3] > 0.5).any(-1).sum()
+        one_line = (runner.label_tile(tile, text.split("\n")[0])[..., 3] > 0.5).any(-1).sum()
         assert (boxed > one_line) == (lines == 2), f"{lines} line(s) on a tile {height} px tall"
         assert boxed <= height / 3 or lines == 1
 
@@ -197,7 +202,7 @@ def _check_warp_error(metrics: dict) -> None:
 
 
 def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_path, monkeypatch):
-    monkeypatch.setattr(scenario_module, "SHARED_DATA", tmp_path / "no-data")
+    monkeypatch.setattr(schema, "SHARED_DATA", tmp_path / "no-data")
     metrics = _run(SCENARIOS[0].parent / "lego.toml", tmp_path / "lego", device)
     assert metrics["skipped"].startswith(f"data folder {tmp_path / 'no-data' / 'nerf_synthetic_lego'} is absent")
     assert not (tmp_path / "lego" / "frames").exists()
@@ -251,18 +256,18 @@ def _disk_full(*_args, **_kwargs):
 
 
 def test_a_full_disk_mid_render_keeps_the_finished_frames_in_metrics(device, tmp_path, monkeypatch, capsys):
-    save_png = render._save_png
+    save_png = runner._save_png
     calls = []
 
     def save_until_full(image, path):
         calls.append(path)
         if len(calls) == 3:
-            with render.atomic_path(path) as temporary:
+            with runner.atomic_path(path) as temporary:
                 temporary.write_bytes(b"\x89PNG\r\n")  # the first bytes, then the disk fills
                 _disk_full()
         save_png(image, path)
 
-    monkeypatch.setattr(render, "_save_png", save_until_full)
+    monkeypatch.setattr(runner, "_save_png", save_until_full)
     out = tmp_path / "out"
     assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(out), "--device", device]) == 1
     error = capsys.readouterr().err
@@ -441,3 +446,14 @@ def test_a_bad_mesh_scene_is_named_for_what_is_wrong(tmp_path, capsys, content, 
     assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
     error = capsys.readouterr().err
     assert says in error and "watertight" not in error
+
+
+def test_a_failed_expectation_exits_4_naming_it(device, tmp_path, capsys):
+    scenario = _tiny_scenario(tmp_path, frames=1)
+    scenario.write_text(scenario.read_text() + "[expect]\nmax_displacement_m = [5.0, 6.0]\nconverged_fraction = 1.0\n")
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--device", device]) == render.EXPECTATION_FAILED
+    error = capsys.readouterr().err
+    assert "[expect] variant 'default': max_displacement_m = " in error and "expected in [5, 6]" in error
+    expect = json.loads((out / "metrics.json").read_text())["expect"]
+    assert not expect["passed"] and [c["passed"] for c in expect["checks"]] == [False, True]
