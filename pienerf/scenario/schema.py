@@ -10,7 +10,6 @@ from __future__ import annotations
 import importlib.util
 import math
 import re
-from dataclasses import dataclass
 from pathlib import Path
 
 try:
@@ -21,8 +20,11 @@ except ModuleNotFoundError:  # Python 3.10
 from pienerf.paths import SHARED_DATA
 from pienerf.scenes import SCENES
 from pienerf.session import SimulationConfig
-from pienerf.sim.materials import MATERIAL_MODELS
-from pienerf.sim.qgmls import ORDERS
+from pienerf.sim.materials import Material
+from pienerf.sim.model import DiscretizationConfig
+from pienerf.sim.picking import DragConfig
+from pienerf.sim.settings import SettingRange, setting_range
+from pienerf.sim.solver import SolverConfig
 
 __all__ = [
     "MAX_COORDINATE",
@@ -44,30 +46,6 @@ _VEC3 = "vec3"
 _BAND = "band"
 
 
-@dataclass(frozen=True)
-class _Number:
-    """A numeric scenario value: its type (``int`` or ``float``), its allowed range and its unit."""
-
-    kind: type
-    low: float
-    high: float
-    unit: str = ""
-    low_open: bool = False
-
-    def describe(self) -> str:
-        kind = "an integer" if self.kind is int else "a number"
-        bracket = "(" if self.low_open else "["
-        unit = f" {self.unit}" if self.unit else ""
-        return f"{kind} in {bracket}{self.low:g}, {self.high:g}]{unit}"
-
-    def admits(self, value) -> bool:
-        if isinstance(value, bool) or not isinstance(value, (int, float) if self.kind is float else int):
-            return False
-        if not math.isfinite(value):
-            return False
-        return (self.low < value if self.low_open else self.low <= value) and value <= self.high
-
-
 MAX_FRAMES = 100_000
 """Most frames a scenario may render (``solver.frames``, ``smoke.frames``): over an hour of video at 24 fps."""
 MAX_STEPS = 1_000_000
@@ -81,12 +59,13 @@ _NAME = re.compile(r"[A-Za-z0-9_-]+")
 """A name that becomes part of a file name (a variant's): letters, digits, ``_`` and ``-``, so it cannot climb out
 of the output folder (``../``) or name a hidden file."""
 
-_PIXELS = _Number(int, 1, 8192, "px")
-_KERNELS = _Number(int, 1, 100_000)
-_RADIUS = _Number(float, 0.0, 10.0, "m", low_open=True)
-_LLOYD = _Number(int, 0, 1000)
-_TIME = _Number(float, 0.0, MAX_TIME, "s")
-_FRAMES = _Number(int, 1, MAX_FRAMES)
+_PIXELS = SettingRange(int, 1, 8192, "px")
+_KERNELS = setting_range(DiscretizationConfig, "kernel_count")
+_RADIUS = setting_range(SimulationConfig, "particle_radius")
+_LENGTH = SettingRange(float, 0.0, 10.0, "m", low_open=True)
+_LLOYD = setting_range(DiscretizationConfig, "kernel_lloyd_iterations")
+_TIME = SettingRange(float, 0.0, MAX_TIME, "s")
+_FRAMES = SettingRange(int, 1, MAX_FRAMES)
 
 _SCHEMA = {
     "": {
@@ -114,57 +93,52 @@ _SCHEMA = {
         "expect": dict,
     },
     "scene": {"name": str, "floor": bool, "default_pins": bool},
-    "material": {
-        "model": str,
-        "young_modulus": _Number(float, 0.0, 1e12, "Pa", low_open=True),
-        "poisson_ratio": _Number(float, -0.999, 0.499),
-        "density": _Number(float, 0.0, 1e5, "kg/m³", low_open=True),
-    },
+    "material": {key: setting_range(Material, key) for key in ("model", "young_modulus", "poisson_ratio", "density")},
     "discretization": {
         "kernel_count": _KERNELS,
         "particle_radius": _RADIUS,
-        "order": str,
+        "order": setting_range(DiscretizationConfig, "order"),
         "lloyd_iterations": _LLOYD,
-        "seed": _Number(int, 0, 2**32 - 1),
+        "seed": setting_range(SimulationConfig, "seed"),
     },
     "solver": {
-        "dt": _Number(float, 0.0, 1.0, "s", low_open=True),
+        "dt": setting_range(SimulationConfig, "dt"),
         "frames": _FRAMES,
-        "substeps": _Number(int, 1, 10_000),
-        "rayleigh_alpha": _Number(float, 0.0, 1e4, "1/s"),
-        "rayleigh_beta": _Number(float, 0.0, 10.0, "s"),
+        "substeps": SettingRange(int, 1, 10_000),
+        "rayleigh_alpha": setting_range(SolverConfig, "rayleigh_alpha"),
+        "rayleigh_beta": setting_range(SolverConfig, "rayleigh_beta"),
         "gravity": _VEC3,
-        "newton_iterations": _Number(int, 1, 1000),
-        "drag_stiffness": _Number(float, 0.0, 1e12, "N/m", low_open=True),
-        "drag_damping": _Number(float, 0.0, 1e12, "N·s/m"),
-        "max_acceleration": _Number(float, 0.0, 1e6, "m/s²", low_open=True),
+        "newton_iterations": setting_range(SolverConfig, "newton_iterations"),
+        "drag_stiffness": setting_range(DragConfig, "stiffness"),
+        "drag_damping": setting_range(DragConfig, "damping"),
+        "max_acceleration": setting_range(DragConfig, "max_acceleration"),
     },
     "pins": {"box": list},
     "drags": {"point": _VEC3, "keys": list, "release": _TIME},
     "forces": {"point": _VEC3, "force": _VEC3, "start": _TIME, "end": _TIME},
-    "cuts": {"point": _VEC3, "normal": _VEC3, "radius": _RADIUS},
-    "colliders": {"type": str, "point": _VEC3, "normal": _VEC3, "centre": _VEC3, "radius": _RADIUS, "keys": list},
+    "cuts": {"point": _VEC3, "normal": _VEC3, "radius": _LENGTH},
+    "colliders": {"type": str, "point": _VEC3, "normal": _VEC3, "centre": _VEC3, "radius": _LENGTH, "keys": list},
     "cameras": {
         "type": str,
-        "distance": _Number(float, 0.0, 1e3, "m", low_open=True),
-        "elevation": _Number(float, -90.0, 90.0, "degrees"),
+        "distance": SettingRange(float, 0.0, 1e3, "m", low_open=True),
+        "elevation": SettingRange(float, -90.0, 90.0, "degrees"),
         "azimuths": list,
-        "spin_deg_per_s": _Number(float, -3600.0, 3600.0, "degrees/s"),
+        "spin_deg_per_s": SettingRange(float, -3600.0, 3600.0, "degrees/s"),
         "positions": list,
         "look_at": _VEC3,
         "up": _VEC3,
         "width": _PIXELS,
         "height": _PIXELS,
-        "fov": _Number(float, 1.0, 179.0, "degrees"),
+        "fov": SettingRange(float, 1.0, 179.0, "degrees"),
     },
     "outputs": {
         "frames": bool,
         "mp4": bool,
         "depth": bool,
         "shadow": bool,
-        "fps": _Number(float, 1.0, 1000.0, "frames/s"),
+        "fps": SettingRange(float, 1.0, 1000.0, "frames/s"),
         "modes": list,
-        "mesh_edge_fraction": _Number(float, 0.0, 10.0, low_open=True),
+        "mesh_edge_fraction": SettingRange(float, 0.0, 10.0, low_open=True),
     },
     "variants": {
         "name": str,
@@ -189,31 +163,33 @@ _SCHEMA = {
         "source": str,
         "up": str,
         "warps": list,
-        "steps": _Number(int, 1, 1_000_000),
-        "batch_rays": _Number(int, 1, 1 << 22),
-        "views": _Number(int, 1, 10_000),
-        "resolution": _Number(int, 8, 8192, "px"),
-        "downscale": _Number(int, 1, 64),
-        "max_views": _Number(int, 1, 10_000),
-        "levels": _Number(int, 1, 32),
-        "log2_table_size": _Number(int, 4, 26),
-        "max_resolution": _Number(int, 2, 1 << 16),
-        "hidden": _Number(int, 1, 1024),
-        "samples_per_diagonal": _Number(int, 1, 8192),
-        "grid_resolution": _Number(int, 2, 1024),
-        "grid_decay": _Number(float, 0.0, 1.0, low_open=True),
-        "solid_resolution": _Number(int, 8, 1024),
+        "steps": SettingRange(int, 1, 1_000_000),
+        "batch_rays": SettingRange(int, 1, 1 << 22),
+        "views": SettingRange(int, 1, 10_000),
+        "resolution": SettingRange(int, 8, 8192, "px"),
+        "downscale": SettingRange(int, 1, 64),
+        "max_views": SettingRange(int, 1, 10_000),
+        "levels": SettingRange(int, 1, 32),
+        "log2_table_size": SettingRange(int, 4, 26),
+        "max_resolution": SettingRange(int, 2, 1 << 16),
+        "hidden": SettingRange(int, 1, 1024),
+        "samples_per_diagonal": SettingRange(int, 1, 8192),
+        "grid_resolution": SettingRange(int, 2, 1024),
+        "grid_decay": SettingRange(float, 0.0, 1.0, low_open=True),
+        "solid_resolution": SettingRange(int, 8, 1024),
     },
-    "warp_error": {"region": list, "dilation": _Number(float, 0.0, 1000.0, "px"), "label": str},
+    "warp_error": {"region": list, "dilation": SettingRange(float, 0.0, 1000.0, "px"), "label": str},
     "expect": {
         "relative_volume": _BAND,
         "max_displacement_m": _BAND,
         "centre_displacement_m": _BAND,
-        "converged_fraction": _Number(float, 0.0, 1.0),
-        "warp_psnr_db": _Number(float, 0.0, 200.0, "dB"),
+        "converged_fraction": SettingRange(float, 0.0, 1.0),
+        "warp_psnr_db": SettingRange(float, 0.0, 200.0, "dB"),
     },
 }
-"""Every key a scenario may hold, per table: its type, and for a number its range and unit (:class:`_Number`)."""
+"""Every key a scenario may hold, per table: its type, and for a number or a choice its
+:class:`pienerf.sim.settings.SettingRange`, read from the config field the key sets where there is one (so a range is
+declared once, on the field) and given here for the scenario's own keys (frames, cameras, outputs, the NeRF fit)."""
 
 NERF_WARPS = {"quadratic": "nerf", "linear": "nerf_linear", "rest": "nerf_rest"}
 """Render mode of each ray warping of the ``[nerf]`` table."""
@@ -239,7 +215,7 @@ def _check_table(table: dict, section: str, where: str) -> None:
             _check_vec3(value, path)
         elif expected == _BAND:
             _check_band(value, path)
-        elif isinstance(expected, _Number):
+        elif isinstance(expected, SettingRange):
             if not expected.admits(value):
                 raise ScenarioError(f"'{path}' must be {expected.describe()}, got {value!r}")
         elif not isinstance(value, expected) or (expected is int and isinstance(value, bool)):
@@ -407,21 +383,6 @@ def _check_structure(scenario: dict) -> None:
         )
     elif nerf.get("source") == "scene":
         raise ScenarioError("[nerf] source = \"scene\" needs 'scene.name'")
-    tables = [("material", scenario.get("material", {}))]
-    tables += [(f"variants[{i}].material", v.get("material", {})) for i, v in enumerate(scenario.get("variants", []))]
-    for where, material in tables:
-        if "model" in material and material["model"] not in MATERIAL_MODELS:
-            raise ScenarioError(
-                f"'{where}.model' must be one of {', '.join(MATERIAL_MODELS)}, got {material['model']!r}"
-            )
-    tables = [("discretization", scenario.get("discretization", {}))]
-    tables += [
-        (f"variants[{i}].discretization", v.get("discretization", {}))
-        for i, v in enumerate(scenario.get("variants", []))
-    ]
-    for where, discretization in tables:
-        if "order" in discretization and discretization["order"] not in ORDERS:
-            raise ScenarioError(f"'{where}.order' must be one of {', '.join(ORDERS)}, got {discretization['order']!r}")
     solver = scenario.get("solver", {})
     for table in ("solver", "smoke"):
         frames = scenario.get(table, {}).get("frames", solver.get("frames", 30))
