@@ -52,8 +52,8 @@ class SolverConfig:
             (a force no body can bear), a Newton matrix whose factorisation fails is assembled again with float64
             products before the host loop shifts it, so such a step ends as a float64 one does.
             :meth:`SolverQGMLS.solve_static` (no mass term: the rigid modes, ~1e-13 of the largest eigenvalue, sit
-            below float32 round-off) always assembles in float64. On an H100 the 78-kernel box assembled in 0.86 ms
-            with float32 products against 1.35 ms (CUDA graphs); on the CPU the float64 products cost little.
+            below float32 round-off) always assembles in float64. Its assembly times on a GPU are on
+            docs/benchmarks.md (the device loop's ``qgmls_assemble``).
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
