@@ -77,7 +77,8 @@ A scenario whose ``requires`` cannot be met (a trained NeRF, the warped-NeRF ren
 An ``[expect]`` table (:mod:`pienerf.scenario.expectations`: a final volume band, a final displacement band of the
 particles or of their centre, a least fraction of converged steps, a least warped-NeRF PSNR) is checked after the
 run: ``metrics.json`` records each check under ``expect`` and, where one fails (and no variant's result is wrong),
-the exit status is 4 (:data:`EXPECTATION_FAILED`).
+the exit status is 4 (:data:`EXPECTATION_FAILED`). ``--smoke`` checks ``[smoke.expect]`` over it, bounds derived for
+the smoke run's two steps (left out when ``--frames`` changes its length); a variant's ``expect`` overrides both.
 
 The work is :func:`pienerf.scenario.render_scenario`; this program parses the arguments, checks them before any work,
 prints the progress and turns the outcome into an exit status.

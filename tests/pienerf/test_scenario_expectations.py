@@ -77,3 +77,7 @@ def test_smoke_expectations_replace_the_full_size_keys_at_smoke_size(tmp_path):
     )
     assert load_scenario(path)["expect"] == {"converged_fraction": 0.9, "relative_volume": [0.9, 1.1]}
     assert load_scenario(path, smoke=True)["expect"] == {"converged_fraction": 1.0, "relative_volume": [0.9, 1.1]}
+    assert load_scenario(path, smoke=True, frames=5)["expect"] == {
+        "converged_fraction": 0.9,
+        "relative_volume": [0.9, 1.1],
+    }
