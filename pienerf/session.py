@@ -38,11 +38,12 @@ from pienerf.render.previews import (
 from pienerf.reports import TimeBreakdown
 from pienerf.scenes import SCENES, scene_density, scene_mesh
 from pienerf.sim.cut import CutPlane
-from pienerf.sim.density import MeshDensity
+from pienerf.sim.density import MeshDensity, load_mesh_file
 from pienerf.sim.materials import MATERIAL_MODELS, Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
 from pienerf.sim.picking import DragConfig, DragController, Interaction, PickHit
 from pienerf.sim.sampling import poisson_disk_sample
+from pienerf.sim.settings import setting
 from pienerf.sim.solver import (
     PlaneCollider,
     QGMLSState,
@@ -141,8 +142,8 @@ class SimulationConfig:
 
     scene: str = "plant"
     material: Material | None = None
-    particle_radius: float | None = None
-    dt: float = 1.0 / 30.0
+    particle_radius: float | None = setting(None, unit="m", low=0.0, high=10.0, low_open=True, doc="sampling r̄")
+    dt: float = setting(1.0 / 30.0, unit="s", low=0.0, high=1.0, low_open=True, doc="time step h")
     solver: SolverConfig = INTERACTIVE_SOLVER
     discretization: DiscretizationConfig | None = None
     drag: DragConfig = DragConfig()
@@ -150,7 +151,7 @@ class SimulationConfig:
     colliders: tuple[PlaneCollider | SphereCollider, ...] = ()
     default_pins: bool = True
     pin_stiffness: float | None = None
-    seed: int = 0
+    seed: int = setting(0, low=0, high=2**32 - 1, doc="seed of the particle sampling")
     nerf_solid_resolution: int = 96
     mesh_edge_fraction: float | None = None
 
@@ -287,9 +288,7 @@ class Simulation:
             self.mesh_vertices, self.mesh_faces, self.mesh_colors = mesh.vertices, mesh.faces, mesh.colors
             self.density = scene_density(name)
         else:
-            import trimesh  # deferred: only mesh-file scenes need it
-
-            loaded = trimesh.load(name, force="mesh")
+            loaded = load_mesh_file(name)
             self.density = MeshDensity(loaded)
             self.mesh_vertices = torch.as_tensor(loaded.vertices, dtype=torch.float32)
             self.mesh_faces = torch.as_tensor(loaded.faces, dtype=torch.int32)

@@ -23,6 +23,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
 __all__ = [
@@ -33,6 +34,7 @@ __all__ = [
     "SDFDensity",
     "Sphere",
     "Union",
+    "load_mesh_file",
     "mesh_signed_distance_grid",
     "sigmoid_density",
 ]
@@ -289,6 +291,41 @@ class Union(SDFDensity):
         return min(f._feature_size() for f in self.fields)
 
 
+def load_mesh_file(path: str | Path):
+    """The triangle mesh in ``path`` (any format ``trimesh.load`` reads; metres) as a ``trimesh.Trimesh``.
+
+    A file that holds no triangles (empty, not a mesh, unreadable) or whose vertices are not all finite is refused
+    by name before trimesh's processing would drop the bad vertices and leave a mesh that merely is not watertight.
+
+    Raises:
+        ValueError: the file is empty, cannot be read as a mesh, holds no triangles, or has NaN/inf vertices.
+    """
+    import trimesh  # deferred: only mesh-file scenes need trimesh
+
+    path = Path(path)
+    if path.is_file() and path.stat().st_size == 0:
+        raise ValueError(
+            f"mesh file {path} is empty (0 bytes); give a mesh file with triangles (.obj, .ply, .stl, ...)"
+        )
+    try:
+        raw = trimesh.load(path, force="mesh", process=False)
+    except Exception as error:  # trimesh raises many kinds for a file it cannot parse
+        raise ValueError(
+            f"mesh file {path} cannot be read as a mesh ({error}); check its format and contents"
+        ) from None
+    if not isinstance(raw, trimesh.Trimesh) or len(raw.faces) == 0 or len(raw.vertices) == 0:
+        raise ValueError(
+            f"mesh file {path} holds no triangles (is it a mesh of this suffix's format?); give a closed triangle mesh"
+        )
+    finite = np.isfinite(np.asarray(raw.vertices)).all(axis=1)
+    if not finite.all():
+        raise ValueError(
+            f"mesh file {path} has {int((~finite).sum())} of {len(finite)} vertices with NaN or infinite "
+            "coordinates; fix or remove them"
+        )
+    return trimesh.load(path, force="mesh")
+
+
 class MeshDensity(SDFDensity):
     """Density of the solid bounded by a watertight triangle mesh.
 
@@ -319,7 +356,7 @@ class MeshDensity(SDFDensity):
         import trimesh
 
         if isinstance(mesh, (str, Path)):
-            mesh = trimesh.load(mesh, force="mesh")
+            mesh = load_mesh_file(mesh)
         if not isinstance(mesh, trimesh.Trimesh):
             raise TypeError(f"mesh must be a trimesh.Trimesh or a path to a mesh file, got {type(mesh).__name__}")
         if not mesh.is_watertight:

@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass
 
 from kernels.hyperelastic import MaterialModel
+from pienerf.sim.settings import setting
 
 __all__ = ["MATERIAL_MODELS", "Material"]
 
@@ -29,10 +30,10 @@ class Material:
         density: ρ (kg/m³), > 0.
     """
 
-    model: str = "neo_hookean"
-    young_modulus: float = 1.0e5
-    poisson_ratio: float = 0.3
-    density: float = 1000.0
+    model: str = setting("neo_hookean", choices=MATERIAL_MODELS, doc="hyperelastic model")
+    young_modulus: float = setting(1.0e5, unit="Pa", low=0.0, high=1e12, low_open=True, doc="Young's modulus E")
+    poisson_ratio: float = setting(0.3, low=-0.999, high=0.499, doc="Poisson's ratio ν")
+    density: float = setting(1000.0, unit="kg/m³", low=0.0, high=1e5, low_open=True, doc="mass density ρ")
 
     def __post_init__(self):
         if self.model not in MATERIAL_MODELS:

@@ -20,6 +20,7 @@ from pienerf.sim.integrator_points import (
 )
 from pienerf.sim.materials import Material
 from pienerf.sim.qgmls import ORDERS, QGMLSBasis, ShapeValues, support_radii
+from pienerf.sim.settings import setting
 
 __all__ = ["DiscretizationConfig", "PointHandle", "QGMLSModel"]
 
@@ -53,13 +54,13 @@ class DiscretizationConfig:
             gave +1/+3/+6 % against Euler–Bernoulli for 8/16/32 kernels and Taylor +18/+20/+41 %.
     """
 
-    kernel_count: int = 32
+    kernel_count: int = setting(32, low=1, high=100_000, doc="simulation kernels")
     ip_count: int | None = None
-    order: str = "quadratic"
+    order: str = setting("quadratic", choices=ORDERS, doc="order of the GMLS shape functions")
     quadrature_points_per_axis: int = 2
     mass_quadrature: str = "cuboid"
-    kernel_lloyd_iterations: int = 5
-    ip_lloyd_iterations: int = 5
+    kernel_lloyd_iterations: int = setting(5, low=0, high=1000, doc="Lloyd steps of the kernels")
+    ip_lloyd_iterations: int = setting(5, low=0, high=1000, doc="Lloyd steps of the integrator points")
     support_neighbours: int = 3
     support_scale: float = 1.3
     cuboid_neighbours: int = 16

@@ -27,6 +27,7 @@ import torch
 
 from pienerf.sim.cut import CutPlane
 from pienerf.sim.model import PointHandle, QGMLSModel
+from pienerf.sim.settings import setting
 from pienerf.sim.solver import PointForces, PointTargets, QGMLSControl
 
 __all__ = [
@@ -201,9 +202,9 @@ class DragConfig:
             near g would cap the pull at a few newtons and a body stiff enough to stand would not follow the mouse.
     """
 
-    stiffness: float | None = None
-    damping: float | None = None
-    max_acceleration: float = 1.0e5
+    stiffness: float | None = setting(None, unit="N/m", low=0.0, high=1e12, low_open=True, doc="drag spring k")
+    damping: float | None = setting(None, unit="N·s/m", low=0.0, high=1e12, doc="drag damper c")
+    max_acceleration: float = setting(1.0e5, unit="m/s²", low=0.0, high=1e6, low_open=True, doc="drag a_max")
 
     def __post_init__(self):
         if self.stiffness is not None and not (0 < self.stiffness < math.inf):

@@ -4,6 +4,7 @@ scenarios (the lego, Fig. 8) fit their NeRF into the test's cache and render it 
 from __future__ import annotations
 
 import errno
+import importlib.util
 import json
 import os
 import signal
@@ -17,6 +18,8 @@ from matplotlib.figure import Figure
 
 from apps import render
 from pienerf import scenario as scenario_module
+from pienerf.paths import SHARED_DATA
+from pienerf.scenario import runner, schema
 
 MAX_TINY_FRAMES = 2000  # the interrupted render would take far longer than the test waits
 SCENARIOS = sorted((Path(__file__).resolve().parents[2] / "assets" / "scenarios").glob("*.toml"))
@@ -52,10 +55,13 @@ def test_scenario_renders_at_smoke_size(device, scenario, tmp_path):
     out = tmp_path / scenario.stem
     metrics = _run(scenario, out, device)
     if "skipped" in metrics:
-        assert scenario.stem == "lego" and not (scenario_module.SHARED_DATA / "nerf_synthetic_lego").is_dir()
+        assert scenario.stem == "lego" and not (SHARED_DATA / "nerf_synthetic_lego").is_dir()
         assert "nerf_synthetic_lego is absent" in metrics["skipped"]
         return
     spec = scenario_module.load_scenario(scenario, smoke=True)
+    # the scenario's own [expect] (over its [smoke.expect]) holds at smoke size
+    assert spec["expect"] and metrics["expect"]["passed"], metrics["expect"]
+    assert {check["key"] for check in metrics["expect"]["checks"]} >= set(spec["expect"])
     frames = spec["solver"]["frames"] + 1
     outputs = {"frames": True, "mp4": True, "depth": False, "shadow": False, **spec.get("outputs", {})}
     assert metrics["frames"] == frames and (out / "time_breakdown.png").is_file()
@@ -118,7 +124,7 @@ def test_label_tile_writes_the_text_into_its_corner():
     import torch
 
     tile = torch.rand(40, 120, 4)
-    labelled = render.label_tile(tile, "ARAP")
+    labelled = runner.label_tile(tile, "ARAP")
     changed = (labelled - tile).abs().amax(-1) > 2 / 255
     assert labelled.shape == tile.shape and changed[-8:, :20].float().mean() > 0.5 and not changed[:20].any()
     assert (labelled[-14:, :30, :3] < 0.1).all(-1).sum() > 10  # the black letters
@@ -130,8 +136,8 @@ def test_a_second_label_line_is_drawn_where_the_tile_has_room_for_it():
     text = "Q-GMLS: NeRF, quadratic warp\nvs mesh on rod: 24.1 dB, IoU 0.83"
     for height, lines in ((192, 2), (36, 1)):
         tile = torch.zeros(height, 256, 4)
-        boxed = (render.label_tile(tile, text)[..., 3] > 0.5).any(-1).sum()
-        one_line = (render.label_tile(tile, text.split("\n")[0])[..., 3] > 0.5).any(-1).sum()
+        boxed = (runner.label_tile(tile, text)[..., 3] > 0.5).any(-1).sum()
+        one_line = (runner.label_tile(tile, text.split("\n")[0])[..., 3] > 0.5).any(-1).sum()
         assert (boxed > one_line) == (lines == 2), f"{lines} line(s) on a tile {height} px tall"
         assert boxed <= height / 3 or lines == 1
 
@@ -196,7 +202,7 @@ def _check_warp_error(metrics: dict) -> None:
 
 
 def test_data_scenario_without_its_data_is_skipped_with_the_reason(device, tmp_path, monkeypatch):
-    monkeypatch.setattr(scenario_module, "SHARED_DATA", tmp_path / "no-data")
+    monkeypatch.setattr(schema, "SHARED_DATA", tmp_path / "no-data")
     metrics = _run(SCENARIOS[0].parent / "lego.toml", tmp_path / "lego", device)
     assert metrics["skipped"].startswith(f"data folder {tmp_path / 'no-data' / 'nerf_synthetic_lego'} is absent")
     assert not (tmp_path / "lego" / "frames").exists()
@@ -250,18 +256,18 @@ def _disk_full(*_args, **_kwargs):
 
 
 def test_a_full_disk_mid_render_keeps_the_finished_frames_in_metrics(device, tmp_path, monkeypatch, capsys):
-    save_png = render._save_png
+    save_png = runner._save_png
     calls = []
 
     def save_until_full(image, path):
         calls.append(path)
         if len(calls) == 3:
-            with render.atomic_path(path) as temporary:
+            with runner.atomic_path(path) as temporary:
                 temporary.write_bytes(b"\x89PNG\r\n")  # the first bytes, then the disk fills
                 _disk_full()
         save_png(image, path)
 
-    monkeypatch.setattr(render, "_save_png", save_until_full)
+    monkeypatch.setattr(runner, "_save_png", save_until_full)
     out = tmp_path / "out"
     assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(out), "--device", device]) == 1
     error = capsys.readouterr().err
@@ -362,3 +368,92 @@ def test_a_sound_render_reports_no_failed_line_search(device, tmp_path, capsys):
     assert metrics["wrong_results"] == {}
     solver = metrics["variants"]["default"]["solver"]
     assert solver["steps"] == 2 and solver["line_search_failures"] == {} and solver["wrong_result"] is None
+    # an offline step iterates to the tolerance, not the interactive viewer's one Newton iteration
+    assert solver["unconverged_steps"] == 0
+    assert solver["newton_iterations_cap"] == scenario_module.OFFLINE_NEWTON_ITERATIONS
+    assert metrics["time_breakdown"]["newton_iterations"] > metrics["time_breakdown"]["steps"]
+
+
+def test_a_missing_video_encoder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+    find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *args: None if name == "imageio_ffmpeg" else find_spec(name, *args)
+    )
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path, mp4=True)), "--out", str(out), "--device", "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert "pip install imageio-ffmpeg" in error and "mp4 = false" in error
+    assert not out.exists()  # refused before any work
+    # without a video, the same machine renders the frames
+    assert render.main([str(_tiny_scenario(tmp_path, frames=1)), "--out", str(out), "--device", "cpu"]) == 0
+
+
+@pytest.mark.parametrize("name", ["../escaped", "a/b", ".hidden", "", "tab\t"])
+def test_a_variant_name_that_is_no_file_name_is_refused(tmp_path, capsys, name):
+    scenario = _tiny_scenario(tmp_path)
+    scenario.write_text(scenario.read_text() + f'[[variants]]\nname = "{name}"\n')
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--device", "cpu"]) == 2
+    assert "'variants[0].name'" in capsys.readouterr().err
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["tiny.toml"]
+
+
+@pytest.mark.parametrize("frames", ["0", "-3"])
+def test_frames_below_one_are_refused(tmp_path, capsys, frames):
+    scenario = SCENARIOS[0]
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--smoke", "--frames", frames, "--device", "cpu"]) == 2
+    assert f"--frames must be an integer in [1, {scenario_module.MAX_FRAMES}]" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_frames_replace_the_smoke_length(device, tmp_path):
+    out = tmp_path / "out"
+    args = [str(_tiny_scenario(tmp_path, frames=40)), "--out", str(out), "--frames", "1", "--device", device]
+    assert render.main(args) == 0
+    assert json.loads((out / "metrics.json").read_text())["frames"] == 2
+
+
+def test_an_earlier_render_in_the_out_folder_is_cleared_and_said(device, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert render.main([str(_tiny_scenario(tmp_path, frames=3)), "--out", str(out), "--device", device]) == 0
+    (out / "notes.txt").write_text("mine")
+    other = tmp_path / "other.toml"
+    other.write_text(_tiny_scenario(tmp_path, frames=1).read_text().replace('name = "tiny"', 'name = "other"', 1))
+    capsys.readouterr()
+    assert render.main([str(other), "--out", str(out), "--device", device]) == 0
+    said = capsys.readouterr().out
+    assert "files of an earlier render of scenario 'tiny'" in said and "notes.txt" in said
+    assert sorted(p.name for p in (out / "frames").iterdir()) == ["frame_0000.png", "frame_0001.png"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert json.loads((out / "metrics.json").read_text())["scenario"] == "other"
+
+
+@pytest.mark.parametrize(
+    ("content", "says"),
+    [
+        (b"", "is empty (0 bytes)"),
+        (bytes(range(256)) * 2, "holds no triangles"),
+        (b"v 0 0 0\nv 1 0 0\nv 0 nan 0\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n", "1 of 4 vertices with NaN"),
+    ],
+    ids=["empty", "garbage", "nan"],
+)
+def test_a_bad_mesh_scene_is_named_for_what_is_wrong(tmp_path, capsys, content, says):
+    mesh = tmp_path / "body.obj"
+    mesh.write_bytes(content)
+    scenario = _tiny_scenario(tmp_path)
+    scenario.write_text(scenario.read_text().replace('name = "jelly"', f'name = "{mesh}"'))
+    assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    error = capsys.readouterr().err
+    assert says in error and "watertight" not in error
+
+
+def test_a_failed_expectation_exits_4_naming_it(device, tmp_path, capsys):
+    scenario = _tiny_scenario(tmp_path, frames=1)
+    scenario.write_text(scenario.read_text() + "[expect]\nmax_displacement_m = [5.0, 6.0]\nconverged_fraction = 1.0\n")
+    out = tmp_path / "out"
+    assert render.main([str(scenario), "--out", str(out), "--device", device]) == render.EXPECTATION_FAILED
+    error = capsys.readouterr().err
+    assert "[expect] variant 'default': max_displacement_m = " in error and "expected in [5, 6]" in error
+    expect = json.loads((out / "metrics.json").read_text())["expect"]
+    assert not expect["passed"] and [c["passed"] for c in expect["checks"]] == [False, True]

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 
 from kernels import backend
+from pienerf.sim.settings import setting
 
 __all__ = ["SolverConfig"]
 
@@ -55,9 +56,9 @@ class SolverConfig:
     """
 
     gravity: tuple[float, float, float] = (0.0, -9.81, 0.0)
-    rayleigh_alpha: float = 0.0
-    rayleigh_beta: float = 0.0
-    newton_iterations: int = 3
+    rayleigh_alpha: float = setting(0.0, unit="1/s", low=0.0, high=1e4, doc="mass-proportional damping α")
+    rayleigh_beta: float = setting(0.0, unit="s", low=0.0, high=10.0, doc="stiffness-proportional damping β")
+    newton_iterations: int = setting(3, low=1, high=1000, doc="most Newton iterations per step")
     hessian_updates: int | None = None
     newton_tolerance: float = 1e-8
     line_search_steps: int = 20

@@ -19,6 +19,9 @@ def test_converged_steps_leave_nothing_to_report():
         "line_search_failed_steps": 0,
         "line_search_failures": {},
         "stuck_steps": 0,
+        "newton_tolerance_m": None,
+        "newton_iterations_cap": None,
+        "largest_unconverged_update_m": None,
         "wrong_result": None,
     }
 
@@ -46,3 +49,16 @@ def test_a_run_whose_every_step_is_stuck_is_wrong():
     tally = _tally(*[QGMLSStepReport(iterations=1, line_search_failure="inversion")] * 3)
     assert tally.wrong_result() == "the line search could not move the body in any of the 3 steps"
     assert StepTally().wrong_result() is None  # no steps: nothing went wrong
+
+
+def test_unconverged_steps_report_how_far_from_the_tolerance_they_ended():
+    tally = StepTally(tolerance=1e-8, iteration_cap=50)
+    for report in (
+        QGMLSStepReport(iterations=50, last_update=3e-6),
+        QGMLSStepReport(iterations=4, last_update=5e-9, converged=True),
+        QGMLSStepReport(iterations=50, last_update=2e-7),
+    ):
+        tally.add(report)
+    solver = tally.to_dict()
+    assert solver["unconverged_steps"] == 2 and solver["largest_unconverged_update_m"] == 3e-6
+    assert solver["newton_tolerance_m"] == 1e-8 and solver["newton_iterations_cap"] == 50

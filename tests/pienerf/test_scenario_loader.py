@@ -190,3 +190,19 @@ def test_fuzzed_scenarios_load_or_fail_with_a_scenario_error(tmp_path, monkeypat
             assert str(path) in str(error) and "\n" not in str(error), f"trial {trial}: {error}"
             outcomes["refused"] += 1
     assert outcomes["loaded"] > 20 and outcomes["refused"] > 100, outcomes
+
+
+def test_variant_names_are_file_names_and_distinct(tmp_path):
+    base = '[scene]\nname = "jelly"\n[cameras]\n'
+    assert "use only letters, digits" in _error(tmp_path, base + '[[variants]]\nname = "../up"\n')
+    twice = base + '[[variants]]\nname = "a"\n[[variants]]\nname = "a"\n'
+    assert "'variants[1].name' 'a' repeats an earlier variant's" in _error(tmp_path, twice)
+
+
+@pytest.mark.parametrize("frames", [0, -1, MAX_FRAMES + 1, True, 2.0])
+def test_a_frame_count_below_one_or_past_the_bound_is_refused(tmp_path, frames):
+    path = tmp_path / "scenario.toml"
+    path.write_text('[scene]\nname = "jelly"\n[cameras]\n')
+    with pytest.raises(ScenarioError, match=r"--frames must be an integer in \[1, "):
+        load_scenario(path, frames=frames)
+    assert load_scenario(path, frames=4)["solver"]["frames"] == 4
