@@ -57,7 +57,9 @@ render there (of this scenario or another) are removed first, and the run says s
 and counted.
 
 Each step iterates Newton to the solver's tolerance (``solver.newton_iterations``, default
-:data:`pienerf.scenario.OFFLINE_NEWTON_ITERATIONS`), not the interactive viewer's one iteration.
+:data:`pienerf.scenario.OFFLINE_NEWTON_ITERATIONS`), not the interactive viewer's one iteration, with the solver's
+host loop on every device. ``solver.hessian_precision`` (``auto``, ``float32`` or ``float64``) sets the precision of
+the elastic Hessian's block products (:class:`pienerf.sim.solver.SolverConfig`).
 
 Every file is written whole or not at all (a temporary file in the same folder, then moved into place). Ctrl-C
 stops the render with exit status 130: ``metrics.json`` then holds the frames that finished and

@@ -47,7 +47,8 @@ OFFLINE_NEWTON_ITERATIONS = 50
 figure iterates each step to ``SolverConfig.newton_tolerance`` instead of taking the interactive viewer's one
 iteration (:data:`pienerf.session.INTERACTIVE_SOLVER`). Line-searched Newton converges quadratically near the
 solution, so a step that has not met the tolerance after 50 iterations is stalled (the summary line reports its last
-update against the tolerance), not slow."""
+update against the tolerance), not slow. Scenario steps run the solver's host loop on every device, which stops at the
+tolerance (:meth:`pienerf.sim.solver.SolverQGMLS.step`)."""
 
 
 @dataclass
@@ -159,6 +160,9 @@ def build_run(
         rayleigh_alpha=solver.get("rayleigh_alpha"),
         rayleigh_beta=solver.get("rayleigh_beta"),
         newton_iterations=solver.get("newton_iterations", OFFLINE_NEWTON_ITERATIONS),
+        hessian_precision=solver.get("hessian_precision"),
+        device_loop=False,  # the host loop stops at convergence; the device loop would run every one of the cap's
+        # iterations (it masks those after convergence so as to read nothing), which suits one interactive iteration
         floor=scene.get("floor"),
         default_pins=scene.get("default_pins"),
         drag_stiffness=solver.get("drag_stiffness"),

@@ -109,6 +109,7 @@ _SCHEMA = {
         "rayleigh_beta": setting_range(SolverConfig, "rayleigh_beta"),
         "gravity": _VEC3,
         "newton_iterations": setting_range(SolverConfig, "newton_iterations"),
+        "hessian_precision": setting_range(SolverConfig, "hessian_precision"),
         "drag_stiffness": setting_range(DragConfig, "stiffness"),
         "drag_damping": setting_range(DragConfig, "damping"),
         "max_acceleration": setting_range(DragConfig, "max_acceleration"),

@@ -67,7 +67,9 @@ class SolverConfig:
     device_loop: bool | None = None
     line_search_batch: int = 3
     factor_reuse: int = 0
-    hessian_precision: str = "auto"
+    hessian_precision: str = setting(
+        "auto", choices=tuple(backend.PRECISIONS), doc="precision of the elastic Hessian's block products"
+    )
 
     def __post_init__(self):
         values = [*self.gravity, self.rayleigh_alpha, self.rayleigh_beta, self.newton_tolerance]
