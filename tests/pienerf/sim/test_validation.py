@@ -147,23 +147,24 @@ def _shape(name: str) -> tuple[torch.Tensor, torch.Tensor]:
     return lattice((0.2, 0.2, 0.1), 0.025, keep=lambda x: (x[:, 0] < 0.1) | (x[:, 1] < 0.1))  # L-shape
 
 
-@pytest.mark.parametrize("shape", ["box", "rod", "l_shape"])
-def test_random_drags_for_2000_steps_stay_finite_uninverted_and_bounded(device, shape):
+@pytest.mark.parametrize("shape, windows, seed", [("box", 40, 0), ("rod", 12, 1), ("l_shape", 12, 2)])
+def test_random_drags_for_many_steps_stay_finite_uninverted_and_bounded(device, shape, windows, seed):
     """Implicit Euler does not create energy: E_kin + U stays below the work the drags and gravity can do.
 
     Targets are constant within each 50-step window, so a drag spring is conservative there and does
     at most its potential at the window's start, ½ k Σ|x − target|², of work on the body; gravity
-    does m g (ȳ₀ − ȳ) = f_gᵀ(q − q₀); the penalty floor and the elastic energy are conservative.
+    does m g (ȳ₀ − ȳ) = f_gᵀ(q − q₀); the penalty floor and the elastic energy are conservative. The box takes
+    2000 steps, the rod and the L-shape 600 each.
     """
     position, volume = _shape(shape)
     position = position + torch.tensor([0.0, 0.05, 0.0], dtype=torch.float64)  # above the floor y = 0
     model = QGMLSModel(position, volume, DiscretizationConfig(kernel_count=8), device=backend.torch_device())
     solver = SolverQGMLS(model, Material(young_modulus=5e4, poisson_ratio=0.4), SolverConfig(newton_iterations=2))
     state, floor, dt = solver.rest_state(), PlaneCollider(), 1.0 / 60.0
-    generator = torch.Generator().manual_seed(hash(shape) % 1000)
+    generator = torch.Generator().manual_seed(seed)
     stiffness = 20.0  # N/m per dragged point: drags bend the body by centimetres
     budget, lowest_det = 0.0, math.inf
-    for window in range(40):
+    for window in range(windows):
         picks = torch.randperm(position.shape[0], generator=generator)[:3]
         handle = model.handle(position[picks])
         offset = (torch.rand(3, 3, generator=generator, dtype=torch.float64) - 0.5) * torch.tensor([0.6, 0.4, 0.6])
