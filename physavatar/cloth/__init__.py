@@ -60,7 +60,8 @@ The package's modules, each built from the ones before it:
 * :mod:`~physavatar.cloth.newton_system`: the Newton matrices on their block pattern and the linear solver;
 * :mod:`~physavatar.cloth.potential`: the incremental potential, its gradient and element Hessians, the material;
 * :mod:`~physavatar.cloth.newton_loop`: the Newton iterations of a step, over those three parts;
-* :mod:`~physavatar.cloth.solver`: :class:`SolverCloth`, its state, control, statistics and sensitivities.
+* :mod:`~physavatar.cloth.solver`: :class:`SolverCloth`, its state, control, statistics and sensitivities;
+* :mod:`~physavatar.cloth.rollout`: :class:`ClothRollout`, a rollout as a torch operation with an adjoint backward.
 """
 
 from physavatar.cloth.config import DENSITY_RANGE, LINEAR_SOLVERS, STIFFNESS_RANGE, ClothConfig
@@ -68,7 +69,15 @@ from physavatar.cloth.contact import friction_potential
 from physavatar.cloth.newton_loop import PHASES
 from physavatar.cloth.newton_system import DENSE_MAX_DOFS
 from physavatar.cloth.potential import ClothEnergies, barrier_stiffness, bending_stiffness, lumped_masses
-from physavatar.cloth.solver import SENSITIVITY_PARAMETERS, ClothControl, ClothState, ClothStepReport, SolverCloth
+from physavatar.cloth.rollout import ClothRollout, RolloutScene, rollout
+from physavatar.cloth.solver import (
+    SENSITIVITY_PARAMETERS,
+    ClothControl,
+    ClothState,
+    ClothStepReport,
+    SolverCloth,
+    StepLinearisation,
+)
 
 __all__ = [
     "ClothConfig",
@@ -87,4 +96,8 @@ __all__ = [
     "bending_stiffness",
     "friction_potential",
     "lumped_masses",
+    "ClothRollout",
+    "RolloutScene",
+    "StepLinearisation",
+    "rollout",
 ]

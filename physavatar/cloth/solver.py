@@ -19,12 +19,19 @@ from kernels import backend, ccd, ipc_barrier, shell
 from kernels import contact as contact_kernels
 from kernels.raycast import MeshBVH
 from physavatar.cloth.config import ClothConfig
-from physavatar.cloth.contact import ClothContact, ContactPairs, friction_potential
+from physavatar.cloth.contact import ClothContact, ContactPairs, LaggedFriction, friction_potential
 from physavatar.cloth.newton_loop import NewtonLoop, PhaseTimer
 from physavatar.cloth.newton_system import LinearSolver, NewtonElement, NewtonMatrices
-from physavatar.cloth.potential import ClothEnergies, IncrementalPotential, StepContext
+from physavatar.cloth.potential import ClothEnergies, IncrementalPotential, StepContext, bending_stiffness
 
-__all__ = ["SENSITIVITY_PARAMETERS", "ClothControl", "ClothState", "SolverCloth", "ClothStepReport"]
+__all__ = [
+    "SENSITIVITY_PARAMETERS",
+    "ClothControl",
+    "ClothState",
+    "SolverCloth",
+    "ClothStepReport",
+    "StepLinearisation",
+]
 
 F64 = torch.float64
 SENSITIVITY_PARAMETERS = ("density", "kappa_s", "kappa_b")
@@ -86,6 +93,29 @@ class ClothStepReport:
     time: dict[str, float] = field(default_factory=dict)
     candidate_searches: int = 1
     line_search_stalled: bool = False
+
+
+@dataclass
+class StepLinearisation:
+    """One converged step's incremental potential, linearised at its end state (:meth:`SolverCloth.linearise_step`).
+
+    Attributes:
+        matrix: the Hessian ``H`` of ``E`` on the free DOFs at ``x⁺`` (the linear solver's matrix, for
+            ``solver.linear.solve(matrix, rhs [3n, P])``); valid until the solver assembles again.
+        free: ``[n]`` the free garment vertices, in the order of the matrix's block rows.
+        positions: ``[V + B, 3]`` ``x⁺`` with the body at the end of the step, m.
+        parts: the gradient ``[V + B, 3]`` of each term of ``E`` at ``x⁺`` by name (``IncrementalPotential.evaluate``).
+        friction: the lagged friction of the step (``None`` without friction or contacts at its start).
+        friction_hessian: ``[K, 12, 12]`` Hessian ``H_D`` of the friction potential at ``x⁺ − x`` (unscaled, N/m),
+            ``None`` with ``friction``.
+    """
+
+    matrix: object
+    free: torch.Tensor
+    positions: torch.Tensor
+    parts: dict[str, torch.Tensor]
+    friction: LaggedFriction | None
+    friction_hessian: torch.Tensor | None
 
 
 @dataclass
@@ -462,6 +492,67 @@ class SolverCloth:
         s_x_out[free] = solution.view(-1, 3, count)
         s_v_out = (s_x_out - s_x) / dt if dynamic else torch.zeros_like(s_x_out)
         return s_x_out, s_v_out
+
+    def linearise_step(
+        self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float, exact_hessian: bool = True
+    ) -> StepLinearisation:
+        """The step's potential linearised at its end: what :meth:`sensitivity_step` solves with, for adjoints.
+
+        Call it with a step's ``state_in``, its result ``state_out``, ``control`` and ``dt``, as
+        :meth:`sensitivity_step`; the same approximations hold (lagged friction from the start of the step, contact
+        set of ``x⁺``). Cost: one broad phase, one assembly.
+        """
+        with backend.one_torch_thread_on_cpu():
+            v = self.vertex_count
+            X_start, X, ctx = self._context(state_in, control, dt)
+            ctx = ctx._replace(dof=ctx.dof.clone(), free=ctx.free.clone())  # the step's buffers are reused
+            if tuple(state_out.x.shape) != (v, 3):
+                raise ValueError(f"state_out.x must have shape [{v}, 3], got {list(state_out.x.shape)}")
+            X[:v] = torch.where(ctx.kinematic[:v, None], X[:v], state_out.x.to(X.device, F64))
+            X = X.clone()
+            friction_hessian = None
+            if self.config.friction > 0.0 and not self.config.static:
+                pairs_start = self.contact.broad_phase(X_start, torch.zeros_like(X_start), ctx.kinematic, ctx.x_rest)
+                ctx = ctx._replace(friction=self.contact.lagged_friction(X_start, pairs_start, ctx.kappa))
+                if ctx.friction.index.shape[0]:
+                    velocity = self.config.friction_velocity * dt
+                    friction_hessian = friction_potential(X - X_start, ctx.friction, velocity, True)[2]
+            if friction_hessian is None:
+                ctx = ctx._replace(friction=None)
+            pairs = self.contact.broad_phase(X, torch.zeros_like(X), ctx.kinematic, ctx.x_rest)
+            parts: dict[str, torch.Tensor] = {}
+            _, grad, elements = self.potential.evaluate(
+                X, self.contact.near(X, pairs), ctx, project=not exact_hessian, parts=parts
+            )
+            matrix, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
+            return StepLinearisation(matrix, ctx.free, X, parts, ctx.friction, friction_hessian)
+
+    def set_stiffness_fields(self, membrane: torch.Tensor | None = None, bending: torch.Tensor | None = None) -> None:
+        """Scale the membrane and the bending face by face: ``κ_s s_f`` and ``κ_b b_f`` in place of ``κ_s``, ``κ_b``.
+
+        Args:
+            membrane: ``[F]`` positive factors ``s_f`` of the faces' Lamé parameters (``None``: all 1).
+            bending: ``[F]`` positive factors ``b_f``; a hinge takes the mean of its two faces' (``None``: all 1).
+
+        Raises:
+            ValueError: a field of the wrong shape or with non-positive or non-finite values.
+        """
+        face_count = self.faces.shape[0]
+        device = self.x_rest.device
+        fields = []
+        for name, f in (("membrane", membrane), ("bending", bending)):
+            if f is not None:
+                f = f.detach().to(device, F64)
+                if tuple(f.shape) != (face_count,) or not bool(torch.isfinite(f).all() and (f > 0).all()):
+                    raise ValueError(f"the {name} field must be [{face_count}] positive finite factors, one a face")
+            fields.append(f)
+        cfg = self.config
+        mu, lam = shell.plane_stress_lame(cfg.young, cfg.poisson, cfg.thickness)
+        self.potential.membrane_mu = mu if fields[0] is None else mu * fields[0]
+        self.potential.membrane_lambda = lam if fields[0] is None else lam * fields[0]
+        k = bending_stiffness(cfg)
+        hinge_faces = shell.hinges_from_faces(self.faces)[1]
+        self.potential.k_bend = k if fields[1] is None else k * 0.5 * fields[1][hinge_faces].sum(dim=1)
 
     # -- pieces of a step -------------------------------------------------------------------------------------
 
