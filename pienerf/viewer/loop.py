@@ -12,6 +12,7 @@ import multiprocessing
 import queue
 import threading
 import time
+from collections import OrderedDict
 from collections.abc import Callable
 from typing import Protocol
 
@@ -29,7 +30,11 @@ from pienerf.session import Simulation
 
 __all__ = [
     "CONTROL_RANGES",
+    "MAX_PENDING_COMMANDS",
     "RENDER_MODES",
+    "REST_FRAMES",
+    "REST_SPEED",
+    "CommandQueue",
     "DemoApp",
     "NerfJob",
     "NerfSchedules",
@@ -56,6 +61,74 @@ CONTROL_RANGES = {
 }
 """Values a page may set, name -> (lowest, highest): Young's modulus (Pa), Poisson ratio, density (kg/m³),
 Rayleigh damping α (1/s), gravity's magnitude along -y (m/s²) and the kernel count of a re-sampling."""
+
+
+MAX_PENDING_COMMANDS = 256
+"""Commands a viewer may have waiting for the loop; one more is refused (the page is told) until the loop catches up."""
+
+REST_SPEED = 1.0e-3
+"""Particle speed (m/s) under which the body counts as still."""
+
+REST_FRAMES = 30
+"""Consecutive still frames (1 s at 30 frames/s) after which the loop sleeps until the next event."""
+
+
+_SLEEP_CHECK_SECONDS = 0.5  # a sleeping loop looks at stop (set without wake by a caller) this often
+
+
+class CommandQueue:
+    """The commands waiting for the simulation loop: bounded, and merged where a later one supersedes an earlier one.
+
+    A command submitted with a ``key`` replaces the waiting command of that key (the latest drag target, the latest
+    value of a slider, one reset) and moves to the back, so it still runs after what was submitted before it. A
+    ``heavy`` command (a re-sampling or a cut, which rebuild the body) runs at most once a frame. Thread-safe: the
+    viewers' server threads submit while the loop thread takes.
+
+    Args:
+        limit: most commands waiting at once; a further one raises ValueError.
+    """
+
+    def __init__(self, limit: int = MAX_PENDING_COMMANDS):
+        self.limit = int(limit)
+        self._waiting: OrderedDict[object, tuple[str, Callable[[], object], bool]] = OrderedDict()
+        self._count = 0
+        self._lock = threading.Lock()
+
+    def put(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
+        """Queue ``command`` (described by ``what``); see the class for ``key`` and ``heavy``."""
+        with self._lock:
+            if key is not None and key in self._waiting:
+                self._waiting[key] = (what, command, heavy)
+                self._waiting.move_to_end(key)
+                return
+            if len(self._waiting) >= self.limit:
+                raise ValueError(
+                    f"{what} refused: {self.limit} commands are already waiting for the simulation; "
+                    "send fewer, it catches up within a few frames"
+                )
+            self._count += 1
+            self._waiting[key if key is not None else self._count] = (what, command, heavy)
+
+    def take(self) -> list[tuple[str, Callable[[], object]]]:
+        """The commands of one frame, in order: everything waiting up to the second heavy one (which stays)."""
+        taken, heavy_taken = [], False
+        with self._lock:
+            while self._waiting:
+                key, (what, command, heavy) = next(iter(self._waiting.items()))
+                if heavy and heavy_taken:
+                    break
+                heavy_taken |= heavy
+                del self._waiting[key]
+                taken.append((what, command))
+        return taken
+
+    def empty(self) -> bool:
+        with self._lock:
+            return not self._waiting
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._waiting)
 
 
 def control_value(name: str, value) -> float:
@@ -116,9 +189,8 @@ def render_nerf_in_budget(app: DemoApp, schedule: RefinementSchedule, cameras, l
     """The warped NeRF of ``app``'s simulation seen by ``cameras`` at downscale ``level``. The render's time and this
     frame's step (none while paused) go to ``schedule``, which picks the next moving level by them."""
     sim = app.simulation
-    sim.render_backends["nerf"].downscale = level
     clock = time.perf_counter()
-    frame = sim.render(cameras, 0, "nerf")  # synchronised: the frame is ready when it returns
+    frame = sim.render(cameras, 0, "nerf", downscale=level)  # synchronised: the frame is ready when it returns
     schedule.record(level, time.perf_counter() - clock, 0.0 if app.paused else sim.last_report.time_step)
     return frame
 
@@ -249,6 +321,9 @@ class Viewer(Protocol):
     def show_progress(self, stage: str, fraction: float | None) -> None:
         """Show the progress of slow work (``fraction`` in [0, 1]), or hide it (``None``)."""
 
+    def has_clients(self) -> bool:
+        """Whether any page is connected (with none the loop sleeps until one connects)."""
+
     def close(self) -> None: ...
 
 
@@ -270,26 +345,41 @@ class DemoApp:
         self.viewer = viewer
         self.render_mode = render_mode
         self.nerf_options = dict(nerf_options or {})
-        self.commands: queue.Queue[tuple[str, Callable[[], object]]] = queue.Queue()
+        self.commands = CommandQueue()
         self.stop = threading.Event()
         self.paused = False
+        self.still_frames = 0  # consecutive frames the body stayed still with nothing to do
+        self._wake = threading.Event()
         self.fps = 0.0
         self.errors: list[str] = []
         self.nerf_job: NerfJob | None = None
         self._nerf_ready: Callable[[], object] | None = None
         viewer.attach(self)
 
-    def submit(self, what: str, command: Callable[[], object]) -> None:
-        """Queue ``command`` to run in the loop thread between steps."""
-        self.commands.put((what, command))
+    def submit(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
+        """Queue ``command`` to run in the loop thread between steps (``key`` and ``heavy`` as
+        :meth:`CommandQueue.put`, which raises ValueError when too many wait); wakes a sleeping loop."""
+        self.commands.put(what, command, key, heavy)
+        self.wake()
+
+    def wake(self) -> None:
+        """Something changed (a command, a tab, a camera): the loop runs its frames again at once."""
+        self.still_frames = 0
+        self._wake.set()
 
     def run_commands(self) -> None:
-        while True:
-            try:
-                what, command = self.commands.get_nowait()
-            except queue.Empty:
-                return
+        """Run one frame's commands (:meth:`CommandQueue.take`); later ones wait for the next frame."""
+        for what, command in self.commands.take():
             self._run(what, command)
+            self.still_frames = 0
+
+    @property
+    def resting(self) -> bool:
+        """Whether the loop may sleep: no page is connected, or the body stayed still (:data:`REST_SPEED`) for
+        :data:`REST_FRAMES` frames with nothing dragged, no command waiting and no NeRF being fitted."""
+        if self.nerf_job is not None or not self.commands.empty():
+            return False
+        return not self.viewer.has_clients() or self.still_frames >= REST_FRAMES
 
     def _run(self, what: str, command: Callable[[], object]) -> None:
         try:
@@ -338,6 +428,8 @@ class DemoApp:
 
     def close(self) -> None:
         """Stop a fit in progress and close the viewer."""
+        self.stop.set()
+        self._wake.set()
         if self.nerf_job is not None:
             self.nerf_job.cancel()
             self.nerf_job = None
@@ -360,16 +452,27 @@ class DemoApp:
         start = time.perf_counter()
         if not self.paused:
             self.simulation.step()
+        still = self.paused or self.simulation.max_speed() < REST_SPEED
+        self.still_frames = self.still_frames + 1 if still and not self.simulation.dragging else 0
         self.viewer.update(self)
         elapsed = time.perf_counter() - start
         self.fps = 0.9 * self.fps + 0.1 / max(elapsed, 1e-6) if self.fps else 1.0 / max(elapsed, 1e-6)
 
     def run(self, steps: int | None = None, frame_seconds: float = 1.0 / 30.0) -> None:
-        """Loop until :attr:`stop` is set (or ``steps`` frames ran), at most one frame per ``frame_seconds``."""
+        """Loop until :attr:`stop` is set (or ``steps`` frames ran), at most one frame per ``frame_seconds``.
+
+        Without ``steps`` the loop sleeps while :attr:`resting` and wakes at the next :meth:`wake` (a command, a tab
+        connecting, a camera move): an unwatched or still body costs no frames."""
         count = 0
         while not self.stop.is_set() and (steps is None or count < steps):
+            if steps is None and self.resting:
+                self._wake.clear()
+                if self.resting:  # nothing woke it between the check and the clear
+                    self._wake.wait(_SLEEP_CHECK_SECONDS)
+                continue
             start = time.perf_counter()
             self.tick()
             count += 1
             if steps is None:
-                self.stop.wait(max(0.0, frame_seconds - (time.perf_counter() - start)))
+                self._wake.clear()
+                self._wake.wait(max(0.0, frame_seconds - (time.perf_counter() - start)))
