@@ -31,6 +31,7 @@ def pytest_configure(config):
         "data: touches the shared data folder (directly or through an app's default); CI runs these once more with "
         "PIE_SHARED_DATA pointing nowhere, as on a machine without the folder",
     )
+    config.addinivalue_line("markers", "browser: drives a real browser (Playwright and Debian's chromium)")
 
 
 def pytest_collection_modifyitems(config, items):
