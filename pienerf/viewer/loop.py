@@ -8,8 +8,6 @@ message, a bad value) is reported to the viewer and the loop goes on.
 
 from __future__ import annotations
 
-import multiprocessing
-import queue
 import threading
 import time
 from collections import OrderedDict
@@ -18,15 +16,10 @@ from typing import Protocol
 
 import numpy as np
 
-from kernels import backend
-from kernels.hashgrid import HashGridConfig
-from pienerf.nerf.field import NGPConfig
-from pienerf.nerf.fitting import NerfFit
-from pienerf.nerf.training import TrainConfig, load_checkpoint
-from pienerf.render.previews import Frame, RenderBackend
+from pienerf.render.previews import Frame
 from pienerf.render.refinement import RefinementSchedule
-from pienerf.scenes import SCENES, scene_nerf
-from pienerf.session import Simulation
+from pienerf.scenes import SCENES
+from pienerf.viewer.nerf_job import NerfJob, load_nerf
 
 __all__ = [
     "CONTROL_RANGES",
@@ -36,14 +29,11 @@ __all__ = [
     "REST_SPEED",
     "CommandQueue",
     "DemoApp",
-    "NerfJob",
     "NerfSchedules",
     "Viewer",
     "control_value",
-    "load_nerf",
     "render_nerf_in_budget",
     "si_text",
-    "smoke_fit",
     "vector3",
 ]
 
@@ -206,111 +196,10 @@ def vector3(value, what: str) -> np.ndarray:
     return array
 
 
-def smoke_fit() -> NerfFit:
-    """A NeRF fit of a few seconds for smoke runs (16 views of 32², 60 steps, a small hash grid)."""
-    ngp = NGPConfig(
-        hashgrid=HashGridConfig(levels=6, features=2, log2_table_size=12, base_resolution=8, max_resolution=64),
-        density_hidden=16,
-        color_hidden=16,
-        color_layers=1,
-        grid_resolution=32,
-        samples_per_diagonal=128,
-    )
-    return NerfFit(ngp=ngp, train=TrainConfig(steps=60, batch_rays=512, grid_warmup_steps=16), views=16, resolution=32)
-
-
-def load_nerf(
-    simulation: Simulation, checkpoint: str | None = None, fit=None, cache_dir: str | None = None, progress=None
-) -> RenderBackend:
-    """Give ``simulation`` its ``"nerf"`` render mode: a given checkpoint, else the NeRF of its embedded scene
-    (trained on the scene's rendered views, or loaded from the cache); returns the render backend."""
-    if "nerf" in simulation.render_backends:
-        return simulation.render_backends["nerf"]
-    if checkpoint is not None:
-        trained = load_checkpoint(checkpoint)
-    elif simulation.config.scene in SCENES:
-        trained = scene_nerf(simulation.config.scene, fit or NerfFit(), cache_dir, progress)
-    else:
-        raise ValueError(
-            f"no NeRF for the mesh scene {simulation.config.scene!r}: pass --nerf-checkpoint PATH "
-            "(trained in the mesh's coordinates) or use an embedded scene"
-        )
-    return simulation.add_nerf_render(trained.field, trained.grid)
-
-
-def _fit_in_child(scene: str, fit, cache_dir: str | None, device: str, messages) -> None:
-    """The body of a :class:`NerfJob`'s process: fit (or load) the scene's NeRF into the cache, reporting."""
-    backend.init(device)
-    try:
-        scene_nerf(scene, fit or NerfFit(), cache_dir, lambda stage, fraction: messages.put((stage, fraction)))
-    except Exception as error:  # reported to the parent, which shows it
-        messages.put((f"{type(error).__name__}: {error}", None))
-        return
-    messages.put(("", 1.0))
-
-
-class NerfJob:
-    """The fit of an embedded scene's NeRF (:func:`pienerf.scenes.scene_nerf`) in a separate process.
-
-    The process writes the checkpoint to the scene cache, where :func:`load_nerf` then finds it. :meth:`poll`
-    never blocks.
-
-    Args:
-        scene: one of :data:`pienerf.scenes.SCENES`.
-        fit: the fitting settings (default :class:`pienerf.nerf.fitting.NerfFit`).
-        cache_dir: the cache root (as :func:`pienerf.scenes.scene_nerf`).
-        device: where the process fits (default: this process's device).
-
-    Attributes:
-        finished: the process has ended.
-        error: why it failed, or ``None``.
-    """
-
-    def __init__(self, scene: str, fit=None, cache_dir: str | None = None, device: str | None = None):
-        if scene not in SCENES:
-            raise ValueError(f"no NeRF can be fitted to {scene!r}: embedded scenes are {', '.join(SCENES)}")
-        context = multiprocessing.get_context("spawn")  # a fresh interpreter: Taichi and torch state are per process
-        self._messages = context.Queue()
-        device = device or backend.current_device() or backend.default_device()
-        self._process = context.Process(
-            target=_fit_in_child, args=(scene, fit, cache_dir, device, self._messages), daemon=True
-        )
-        self._process.start()
-        self.finished = False
-        self.error: str | None = None
-
-    def poll(self) -> list[tuple[str, float]]:
-        """Progress reported since the last call, as ``(stage, fraction)``; sets :attr:`finished` and :attr:`error`."""
-        updates = []
-        alive = self._process.is_alive()
-        while True:
-            try:
-                stage, fraction = self._messages.get_nowait()
-            except queue.Empty:
-                break
-            if fraction is None:
-                self.error, self.finished = stage, True
-            elif stage == "" and fraction == 1.0:
-                self.finished = True
-            else:
-                updates.append((stage, fraction))
-        if not alive and not self.finished:
-            self.finished = True
-            self.error = f"the fitting process ended with exit code {self._process.exitcode}"
-        if self.finished:
-            self._process.join(5.0)
-        return updates
-
-    def cancel(self) -> None:
-        """Stop the process (a partly written checkpoint is never left: the fit saves atomically)."""
-        if self._process.is_alive():
-            self._process.terminate()
-            self._process.join(5.0)
-        self.finished = True
-
-
 class Viewer(Protocol):
     """What the demo loop needs from a display."""
+
+    nerf_schedules: NerfSchedules
 
     def attach(self, app: DemoApp) -> None: ...
 
@@ -354,6 +243,7 @@ class DemoApp:
         self.errors: list[str] = []
         self.nerf_job: NerfJob | None = None
         self._nerf_ready: Callable[[], object] | None = None
+        self._nerf_shown = 0  # fits of the current job loaded into the simulation
         viewer.attach(self)
 
     def submit(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
@@ -393,7 +283,8 @@ class DemoApp:
         """Make the ``"nerf"`` render mode available, then call ``then`` (in the loop thread).
 
         A given checkpoint, or one already loaded, is used at once. Otherwise the scene's NeRF is fitted (or loaded
-        from the cache) by a :class:`NerfJob` while the loop goes on stepping; ``then`` runs once it is loaded.
+        from the cache) by a :class:`pienerf.viewer.nerf_job.NerfJob` while the loop goes on stepping; ``then`` runs
+        once the first (coarse) NeRF is loaded, and the refined one replaces it when ready.
         """
         sim = self.simulation
         if "nerf" in sim.render_backends or self.nerf_options.get("checkpoint") is not None:
@@ -406,7 +297,7 @@ class DemoApp:
             load_nerf(sim, **self.nerf_options)  # raises with the fix for a mesh scene
         options = self.nerf_options
         self.nerf_job = NerfJob(sim.config.scene, options.get("fit"), options.get("cache_dir"))
-        self._nerf_ready = then
+        self._nerf_ready, self._nerf_shown = then, 0
         self.viewer.show_progress("NeRF: starting the fit", 0.0)
         self.viewer.report("fitting the NeRF in the background; the simulation goes on")
 
@@ -415,16 +306,25 @@ class DemoApp:
         if job is None:
             return
         for stage, fraction in job.poll():
-            self.viewer.show_progress(f"NeRF: {stage}", fraction)
+            step = f" ({job.ready + 1} of {len(job.fits)})" if len(job.fits) > 1 else ""
+            self.viewer.show_progress(f"NeRF{step}: {stage}", fraction)
+        if job.ready > self._nerf_shown:  # a fit is in the cache: show it (the first), or put it in its place
+            index, self._nerf_shown = job.ready - 1, job.ready
+            options = {**self.nerf_options, "fit": job.fits[index]}
+            if index == 0:
+                self._run("NeRF load", lambda: (load_nerf(self.simulation, **options), self._nerf_ready()))
+            else:
+                self._run("NeRF refinement", lambda: load_nerf(self.simulation, replace=True, **options))
+                self.viewer.nerf_schedules.drop()  # every view is rendered again with it
+                self.wake()
+                self.viewer.report("the refined NeRF replaces the first one")
         if not job.finished:
             return
-        self.nerf_job, then = None, self._nerf_ready
+        self.nerf_job = None
         self.viewer.show_progress("", None)
         if job.error is not None:
             self.errors.append(f"NeRF fit failed: {job.error}")
             self.viewer.report(self.errors[-1])
-            return
-        self._run("NeRF load", lambda: (load_nerf(self.simulation, **self.nerf_options), then()))
 
     def close(self) -> None:
         """Stop a fit in progress and close the viewer."""
