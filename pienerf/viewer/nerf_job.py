@@ -35,12 +35,12 @@ FIRST_FIT = NerfFit(
         grid_resolution=48,
         samples_per_diagonal=192,
     ),
-    train=TrainConfig(steps=500, batch_rays=1024, grid_warmup_steps=16),
+    train=TrainConfig(steps=300, batch_rays=1024, grid_warmup_steps=16),
 )
 """The coarse NeRF shown first: the default fit's views (48 of 64²) on an 8-level hash grid of 2¹⁴ entries, 32-wide
-layers and 1024 rays a step for 500 steps, about a tenth of the default fit's work per step."""
+layers and 1024 rays a step for 300 steps, about a tenth of the default fit's work per step."""
 
-_NICENESS = 10  # the fitting process yields the cores to the simulation loop
+_NICENESS = 5  # the fitting process yields the cores to the simulation loop
 
 
 def smoke_fit() -> NerfFit:
