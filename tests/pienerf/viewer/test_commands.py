@@ -4,11 +4,12 @@ the body rests and wakes at the next command, and a page that connects before th
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import pytest
 
 from kernels import backend
-from pienerf.viewer import build_app
+from pienerf.viewer import build_app, loop
 from pienerf.viewer.loop import MAX_PENDING_COMMANDS, REST_FRAMES, CommandQueue
 from pienerf.viewer.meshcat_viewer import MeshcatViewer
 
@@ -115,3 +116,36 @@ def test_a_page_connecting_before_the_simulation_is_built_is_not_an_error():
         assert not viewer.has_clients()
     finally:
         viewer.close()
+
+
+class _TwoFits:
+    """Stands in for NerfJob: reports its first fit ready, then its second, as the fitting process does."""
+
+    def __init__(self, scene, fit, cache_dir):
+        self.fits = [fit, replace(fit, seed=1)]
+        self.ready, self.finished, self.error, self.polls = 0, False, None, 0
+
+    def poll(self):
+        self.polls += 1
+        self.ready = min(self.polls, 2)
+        self.finished = self.polls >= 2
+        return [("training", 0.5)]
+
+    def cancel(self):
+        self.finished = True
+
+
+def test_the_first_nerf_shows_and_the_refined_one_takes_its_place(tmp_path, monkeypatch):
+    monkeypatch.setattr(loop, "NerfJob", _TwoFits)
+    app = build_app("plant", "meshcat", "127.0.0.1", 0, smoke=True, cache_dir=str(tmp_path))
+    try:
+        app.viewer.on_message(CLIENT, {"type": "set", "name": "render_mode", "value": "nerf"})
+        app.tick()  # starts the job, whose first poll has the first fit ready
+        assert app.render_mode == "nerf" and app.nerf_job is not None
+        first = app.simulation.render_backends["nerf"]
+        app.tick()
+        assert app.nerf_job is None and app.render_mode == "nerf"
+        assert app.simulation.render_backends["nerf"] is not first, "the refined NeRF did not replace the first"
+        assert app.errors == []
+    finally:
+        app.close()
