@@ -39,6 +39,7 @@ def pytest_configure(config):
         "slow: takes seconds to tens of seconds (trains a NeRF, runs a benchmark workload or a long simulation); "
         "`pytest -m 'not slow'` leaves these out for a quick pass, the default run (CI's) keeps them",
     )
+    config.addinivalue_line("markers", "browser: drives a real browser (Playwright and Debian's chromium)")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -325,15 +325,21 @@ class NerfRenderBackend:
             self._frame_q = q.detach().clone()
         return self._frame
 
-    def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
-        """Render the body at ``q [nT, 3]`` seen by view ``view``.
+    def render(
+        self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False, downscale: int | None = None
+    ) -> Frame:
+        """Render the body at ``q [nT, 3]`` seen by view ``view``, at ``downscale`` (default :attr:`downscale`).
 
         ``depth`` is the object's expected depth where its opacity exceeds ½, else the ground's distance on the
         ground square, else ``inf``; ``shadow`` (when asked, with a ground) is the share of light the object
         blocks on the visible ground, 0 on the object.
         """
+        if downscale is None:
+            downscale = self.downscale
+        elif not (isinstance(downscale, int) and not isinstance(downscale, bool) and downscale >= 1):
+            raise ValueError(f"downscale must be an integer >= 1, got {downscale!r}")
         width, height = cameras.width, cameras.height
-        w, h = max(1, math.ceil(width / self.downscale)), max(1, math.ceil(height / self.downscale))
+        w, h = max(1, math.ceil(width / downscale)), max(1, math.ceil(height / downscale))
         origins, directions = self._rays(cameras, view, w, h)
         frame = None if self.mode == "rest" and self.ground is None else self._deformed_frame(q)
         out = self.renderer.render(

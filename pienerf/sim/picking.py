@@ -164,7 +164,12 @@ def clamp_target(target: torch.Tensor, position: torch.Tensor, stiffness: float,
         ``[M, 3]`` clamped targets t̂ (m).
     """
     extension = target - position
-    length = extension.norm(dim=1).clamp_min(1e-300)
+    length = extension.norm(dim=1)
+    # ‖t − x‖ overflows past ~1e154 m; scaled by its largest component it doesn't, so a far target clamps as a near
+    # one does instead of leaving the point where it is (finite lengths keep the plain norm, bit for bit).
+    scale = extension.abs().amax(dim=1).clamp_min(1e-300)
+    length = torch.where(torch.isfinite(length), length, scale * (extension / scale[:, None]).norm(dim=1))
+    length = length.clamp_min(1e-300)
     allowed = max_acceleration / (inverse_mass * stiffness)
     return position + extension * (allowed / length).clamp(max=1.0)[:, None]
 
@@ -347,7 +352,7 @@ class DragController:
         elif ray_origin is not None and ray_direction is not None:
             origin = _vec3(ray_origin, "ray origin")
             direction = _unit(_vec3(ray_direction, "ray direction"), "ray direction")
-            self.target = origin + self.hit.distance * direction
+            self.target = origin + self.hit.distance * direction  # any finite target: the spring clamps it
         else:
             raise ValueError("update needs a ray (ray_origin and ray_direction) or a target point")
         return self.target

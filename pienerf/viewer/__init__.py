@@ -5,6 +5,7 @@
 * :mod:`pienerf.viewer.viser_viewer`: the viser front end;
 * :mod:`pienerf.viewer.meshcat_viewer` (with :mod:`pienerf.viewer.meshcat_server` and the page in ``web/``): the
   meshcat front end, the default;
+* :mod:`pienerf.viewer.nerf_job`: the NeRF render mode's checkpoint, fitted in a separate process;
 * :mod:`pienerf.viewer.origin`: address checks, and the request check that refuses foreign ``Host`` and ``Origin``
   headers (inside viser's server too).
 
@@ -14,10 +15,9 @@
 from __future__ import annotations
 
 from pienerf.session import Simulation, SimulationConfig
-from pienerf.viewer.loop import RENDER_MODES, DemoApp, load_nerf, smoke_fit
-from pienerf.viewer.meshcat_viewer import MeshcatViewer
+from pienerf.viewer.loop import RENDER_MODES, DemoApp
+from pienerf.viewer.nerf_job import load_nerf, smoke_fit
 from pienerf.viewer.origin import check_address
-from pienerf.viewer.viser_viewer import ViserViewer
 
 __all__ = ["RENDER_MODES", "SMOKE", "VIEWERS", "DemoApp", "build_app"]
 
@@ -50,8 +50,16 @@ def build_app(
         raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
-    # The viewer first: a port in use is reported before the simulation is built.
-    viewer = ViserViewer(host, port) if viewer_name == "viser" else MeshcatViewer(host, port)
+    # The viewer first: a port in use is reported before the simulation is built. The front ends are imported here,
+    # deferred: meshcat with tornado, or viser, load only when their front end is built.
+    if viewer_name == "viser":
+        from pienerf.viewer.viser_viewer import ViserViewer
+
+        viewer = ViserViewer(host, port)
+    else:
+        from pienerf.viewer.meshcat_viewer import MeshcatViewer
+
+        viewer = MeshcatViewer(host, port)
     try:
         simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
         nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}

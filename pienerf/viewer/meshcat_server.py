@@ -62,6 +62,19 @@ def _meshcat_bundle() -> bytes:
     return path.read_bytes()
 
 
+def _retrieve(future) -> None:
+    """Mark a finished write's outcome as seen (the tab's close is handled by ``on_close``)."""
+    if not future.cancelled():
+        future.exception()
+
+
+def _log_loop_error(loop, context: dict) -> None:
+    """What the server's event loop could not hand to anyone (a closed tab's write), as one log line."""
+    error = context.get("exception")
+    why = f"{type(error).__name__}: {str(error)[:200]}" if error is not None else context.get("message", "")
+    _LOG.warning("meshcat server: %s", why)
+
+
 class _Client:
     """One open tab: its socket and the state of its per-frame writes."""
 
@@ -176,7 +189,9 @@ class MeshcatServer:
     # -- the server's thread ---------------------------------------------------------------------
 
     def _serve(self, sockets) -> None:
-        asyncio.set_event_loop(asyncio.new_event_loop())
+        loop = asyncio.new_event_loop()
+        loop.set_exception_handler(_log_loop_error)  # one line, never a traceback
+        asyncio.set_event_loop(loop)
         self._loop = tornado.ioloop.IOLoop.current()
         self._http = tornado.httpserver.HTTPServer(self._application)
         self._http.add_sockets(sockets)
@@ -211,6 +226,9 @@ class MeshcatServer:
         except ValueError:
             self._drop(client, "a message that is not JSON")
             return
+        except RecursionError:  # nesting deeper than the interpreter's stack, well under the size limit
+            self._drop(client, "a JSON message nested too deeply")
+            return
         if not isinstance(decoded, dict) or not isinstance(decoded.get("type"), str):
             self._drop(client, "a JSON message that is not an object with a string 'type'")
             return
@@ -222,8 +240,8 @@ class MeshcatServer:
             function(*args)
         except ValueError as error:
             self._drop(client, str(error))
-        except Exception as error:  # a handler's bug must not take the server down
-            self._drop(client, f"{type(error).__name__}: {error}")
+        except Exception as error:  # a handler's bug (or a RecursionError) must not take the server down
+            self._drop(client, f"{type(error).__name__}: {str(error)[:200]}")
 
     def _drop(self, client: _Client, why: str) -> None:
         """Count a dropped message; log one line per client at most every few seconds."""
@@ -243,9 +261,13 @@ class MeshcatServer:
 
     def _write(self, client: _Client, frame: bytes | str, binary: bool):
         try:
-            return client.socket.write_message(frame, binary=binary)
+            future = client.socket.write_message(frame, binary=binary)
         except tornado.websocket.WebSocketClosedError:
             return None
+        # A tab that goes while the frame is written fails the write's task with WebSocketClosedError; retrieving it
+        # here keeps asyncio from logging "Task exception was never retrieved" for every frame sent to it.
+        future.add_done_callback(_retrieve)
+        return future
 
     def _broadcast(self, frame: bytes | str, binary: bool, key: str | None, volatile: bool, to: int | None) -> None:
         if key is not None and to is None:

@@ -48,6 +48,7 @@ from pienerf.viewer.loop import (
     control_value,
     render_nerf_in_budget,
     si_text,
+    vector3,
 )
 from pienerf.viewer.meshcat_server import MeshcatServer
 
@@ -63,17 +64,6 @@ _TARGET = Path((*_ROOT, "drag_target"))
 _CONTROLS = tuple(name for name in CONTROL_RANGES if name != "kernel_count")
 _BUTTONS = ("release", "pin", "push", "cut", "reset")
 _TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
-
-
-def _vector(value, what: str) -> np.ndarray:
-    """A finite 3-vector from a page message, or a ValueError naming the field."""
-    try:
-        array = np.asarray(value, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ValueError(f"{what} is not a 3-vector: {str(value)[:80]}") from None
-    if array.shape != (3,) or not np.isfinite(array).all():
-        raise ValueError(f"{what} must be 3 finite numbers, got {str(value)[:80]}")
-    return array
 
 
 def _number(value, what: str, lo: float, hi: float) -> float:
@@ -144,7 +134,9 @@ class MeshcatViewer:
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
         self.message = ""  # the last one shown
-        self.server = MeshcatServer(host, port, on_message=self.on_message, on_close=self._client_closed)
+        self.server = MeshcatServer(
+            host, port, on_message=self.on_message, on_open=self._client_opened, on_close=self._client_closed
+        )
         self.port, self.url = self.server.port, self.server.url
 
     # -- construction ----------------------------------------------------------------------------
@@ -223,34 +215,41 @@ class MeshcatViewer:
     # -- page events (the server's thread: validate, then queue) --------------------------------
 
     def on_message(self, client: int, message: dict) -> None:
-        """Translate one page message into a queued command; raises ValueError for a malformed one."""
+        """Translate one page message into a queued command; raises ValueError for a malformed one.
+
+        A page connects (and sends its camera) as soon as the server listens, which is before the simulation is
+        built and attached: its camera is kept, anything else is refused until then. Commands that supersede each
+        other are merged while they wait (:class:`pienerf.viewer.loop.CommandQueue`): the latest drag ray, the
+        latest value of each control, one reset, one re-sampling."""
         kind = message.get("type")
         if kind not in _TYPES:
             raise ValueError(f"unknown message type {str(kind)[:40]!r}; known: {', '.join(_TYPES)}")
-        app, sim = self.app, self.app.simulation
-        if kind == "pick":
-            origin, direction = (
-                _vector(message.get("origin"), "ray origin"),
-                _vector(message.get("direction"), "ray direction"),
-            )
-            self._dragger = client
-            app.submit("pick", lambda: self._pick(origin, direction))
-        elif kind == "drag":
-            origin, direction = (
-                _vector(message.get("origin"), "ray origin"),
-                _vector(message.get("direction"), "ray direction"),
-            )
-            app.submit("drag", lambda: self._drag(origin, direction))
-        elif kind == "camera":
+        if kind == "camera":
             view = (message.get("matrix"), message.get("fov"), message.get("aspect"))
             page_cameras(*view, 1)  # validates
             with self._lock:
                 self._cameras[client] = (tuple(view[0]), float(view[1]), float(view[2]))
+            if self.app is not None:
+                self.app.wake()  # a still NeRF view is rendered again from the new camera
+            return
+        app = self.app
+        if app is None:
+            raise ValueError(f"{kind} refused: the simulation is still being built; the page shows it when ready")
+        sim = app.simulation
+        if kind == "pick":
+            origin = vector3(message.get("origin"), "ray origin")
+            direction = vector3(message.get("direction"), "ray direction")
+            self._dragger = client
+            app.submit("pick", lambda: self._pick(origin, direction))
+        elif kind == "drag":
+            origin = vector3(message.get("origin"), "ray origin")
+            direction = vector3(message.get("direction"), "ray direction")
+            app.submit("drag", lambda: self._drag(origin, direction), key="drag")
         elif kind == "set":
             self._checked(self._set, message.get("name"), message.get("value"))
         elif kind == "resample":
             count = int(self._checked(control_value, "kernel_count", message.get("kernel_count")))
-            app.submit("resample", lambda: self._resample(count))
+            app.submit("resample", lambda: self._resample(count), key="resample", heavy=True)
         elif kind == "release":
             app.submit("release", sim.release)
         elif kind == "pin":
@@ -258,9 +257,9 @@ class MeshcatViewer:
         elif kind == "push":
             app.submit("push", self._push)
         elif kind == "cut":
-            app.submit("cut", self._cut)
+            app.submit("cut", self._cut, heavy=True)
         else:
-            app.submit("reset", self._reset)
+            app.submit("reset", self._reset, key="reset")
 
     def _checked(self, translate, *args):
         """``translate(*args)``; a ValueError is shown in the page (the controls go back to the values in use) and
@@ -277,17 +276,25 @@ class MeshcatViewer:
         if name == "model":
             if value not in sim.material_models:
                 raise ValueError(f"unknown material model {str(value)[:40]!r}; valid: {', '.join(sim.material_models)}")
-            app.submit("material model", lambda: self._set_material(model=value))
+            app.submit("material model", lambda: self._set_material(model=value), key="set model")
         elif name == "render_mode":
             if value not in RENDER_MODES:
                 raise ValueError(f"unknown render mode {str(value)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
-            app.submit("render mode", lambda: self._set_render_mode(value))
+            app.submit("render mode", lambda: self._set_render_mode(value), key="set render_mode")
         elif name in _CONTROLS:
             number = control_value(name, value)
             changes = {"gravity": (0.0, -number, 0.0)} if name == "gravity" else {name: number}
-            app.submit(name.replace("_", " "), lambda: self._set_material(**changes))
+            app.submit(name.replace("_", " "), lambda: self._set_material(**changes), key=f"set {name}")
         else:
             raise ValueError(f"unknown control {str(name)[:40]!r}; known: model, render_mode, {', '.join(_CONTROLS)}")
+
+    def _client_opened(self, client: int) -> None:
+        if self.app is not None:
+            self.app.wake()  # a loop asleep for want of a page runs again
+
+    def has_clients(self) -> bool:
+        """Whether a tab is open."""
+        return bool(self.server.clients)
 
     def _client_closed(self, client: int) -> None:
         with self._lock:

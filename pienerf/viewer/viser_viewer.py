@@ -203,8 +203,8 @@ class ViserViewer:
         self.release.on_click(lambda _e: app.submit("release", self._release))
         self.pin.on_click(lambda _e: app.submit("pin", sim.pin_picked))
         self.push.on_click(lambda _e: app.submit("force", self._push))
-        self.cut.on_click(lambda _e: app.submit("cut", lambda: sim.cut_picked((0.0, 1.0, 0.0))))
-        self.reset.on_click(lambda _e: app.submit("reset", sim.reset))
+        self.cut.on_click(lambda _e: app.submit("cut", lambda: sim.cut_picked((0.0, 1.0, 0.0)), heavy=True))
+        self.reset.on_click(lambda _e: app.submit("reset", sim.reset, key="reset"))
         self.show_mesh.on_update(lambda _e: setattr(self.mesh, "visible", self.show_mesh.value))
         self.show_particles.on_update(lambda _e: setattr(self.particles, "visible", self.show_particles.value))
         self.show_ips.on_update(lambda _e: setattr(self.ips, "visible", self.show_ips.value))
@@ -254,7 +254,7 @@ class ViserViewer:
             damping=control_value("damping", self.damping.value),
             gravity=(0.0, -control_value("gravity", self.gravity.value), 0.0),
         )
-        self.app.submit("material change", lambda: self._set_material(values))
+        self.app.submit("material change", lambda: self._set_material(values), key="material change")
 
     def _set_material(self, values: dict) -> None:
         material = self.app.simulation.set_material(**values)
@@ -262,12 +262,12 @@ class ViserViewer:
 
     def _resample_clicked(self, _value) -> None:
         count = int(control_value("kernel_count", self.kernels.value))
-        self.app.submit("resample", lambda: self._resample(count))
+        self.app.submit("resample", lambda: self._resample(count), key="resample", heavy=True)
 
     def _render_mode_chosen(self, mode) -> None:
         if mode not in RENDER_MODES:
             raise ValueError(f"unknown render mode {str(mode)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
-        self.app.submit("render mode", lambda: self._set_render_mode(mode))
+        self.app.submit("render mode", lambda: self._set_render_mode(mode), key="render mode")
 
     # -- events ----------------------------------------------------------------------------------
 
@@ -289,7 +289,7 @@ class ViserViewer:
                 self.app.submit("drag start", lambda: self.app.simulation.pick(origin, direction))
             elif event.phase == "update":
                 target = vector3(event.end_position, "drag position")
-                self.app.submit("drag", lambda: self.app.simulation.drag_to(target=target))
+                self.app.submit("drag", lambda: self.app.simulation.drag_to(target=target), key="drag")
             else:
                 self.app.submit("drag end", self._release)
         except ValueError as error:
@@ -301,6 +301,12 @@ class ViserViewer:
         client.camera.up_direction = (0.0, 1.0, 0.0)
         client.camera.position = centre + np.array([0.0, 0.3, 2.6])
         client.camera.look_at = centre
+        client.camera.on_update(lambda _camera: self.app.wake())  # a still NeRF view is rendered again
+        self.app.wake()  # a loop asleep for want of a client runs again
+
+    def has_clients(self) -> bool:
+        """Whether a client is connected."""
+        return bool(self.server.get_clients())
 
     def _set_render_mode(self, mode: str) -> None:
         """Switch what the page shows; the first time, the NeRF is fitted in the background (progress in the

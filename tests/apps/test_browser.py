@@ -8,12 +8,15 @@ from __future__ import annotations
 
 import threading
 
+import pytest
 import torch
 
 from pienerf.viewer import build_app
 from tests.apps import chromium
 from tests.apps.chromium import requires_chromium
 from tests.pienerf.viewer.test_loop import free_port
+
+pytestmark = pytest.mark.browser
 
 
 def _poll(page, condition, seconds: float = 15.0) -> bool:

@@ -21,6 +21,8 @@ from tests.apps import chromium
 from tests.apps.chromium import requires_chromium
 from tests.pienerf.viewer.test_loop import free_port
 
+pytestmark = pytest.mark.browser
+
 WIDTH, HEIGHT = 1280, 800
 
 # A pixel whose ray hits the plant's mesh above the pot, found with the page's own camera and raycaster.

@@ -55,6 +55,26 @@ def test_clamp_limits_the_spring_acceleration_and_keeps_small_pulls():
     assert torch.equal(clamp_target(target, position, k, w, math.inf), target)
 
 
+def test_a_far_target_clamps_like_a_near_one(device):
+    position = torch.zeros(3, 3, dtype=torch.float64)
+    target = torch.tensor([[1e3, 0.0, 0.0], [1e300, 1e300, 0.0], [1e200, 0.0, 0.0]], dtype=torch.float64)
+    k, w, a_max = 100.0, torch.full((3,), 0.5, dtype=torch.float64), 10.0
+    clamped = clamp_target(target, position, k, w, a_max)
+    # Each is pulled to a_max / (w k) = 0.2 m along its own direction (‖t‖ would overflow for the last two).
+    expected = 0.2 * torch.tensor([[1.0, 0.0, 0.0], [0.5**0.5, 0.5**0.5, 0.0], [1.0, 0.0, 0.0]], dtype=torch.float64)
+    torch.testing.assert_close(clamped, expected, rtol=8 * torch.finfo(torch.float64).eps, atol=0.0)
+
+    model = _model()
+    drag = DragController(model, stiffness=500.0, damping=5.0, max_acceleration=20.0)
+    q = torch.zeros(model.shape_count, 3, dtype=torch.float64, device=model.device)
+    assert drag.pick(torch.tensor([0.225, 0.075, 1.0]), torch.tensor([0.0, 0.0, -1.0]), q) is not None
+    drag.update((1e300, 0.0, 0.0), (1.0, 0.0, 0.0))  # the ray of an absurd camera: clamped as 1e3 is
+    (spring,) = drag.control_terms(q, dt=0.01)
+    assert bool(torch.isfinite(spring.target).all()) and float(spring.target[0, 0]) > float(drag.position(q)[0])
+    with pytest.raises(ValueError, match="finite"):
+        drag.update((math.inf, 0.0, 0.0), (1.0, 0.0, 0.0))  # past float64: refused with the reason
+
+
 def test_spring_damper_equals_one_implicit_spring():
     generator = torch.Generator().manual_seed(0)
     t, x_n, x = (torch.randn(5, 3, generator=generator, dtype=torch.float64) for _ in range(3))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import json
 import os
 import time
@@ -140,3 +141,39 @@ def test_a_late_tab_receives_the_remembered_scene(server):
     frames = asyncio.run(late_tab())
     assert umsgpack.unpackb(frames[0])["path"] == "/a"
     assert json.loads(frames[1]) == {"type": "status", "text": "second"}
+
+
+def test_deeply_nested_json_is_dropped_and_the_connection_kept(server, caplog):
+    async def nested() -> None:
+        socket = await _socket(server)
+        socket.write_message("[" * 100_000 + "]" * 100_000)  # 200 kB, under the size limit
+        socket.write_message('{"type": "known", "value": ' + "[" * 50_000 + "]" * 50_000 + "}")
+        socket.write_message(json.dumps({"type": "known", "value": 3}))
+        assert await _after(lambda: len(server.received) == 1)
+        socket.close()
+
+    asyncio.run(nested())
+    assert server.dropped == 2
+    assert [message["value"] for _, message in server.received] == [3]
+    assert not [record for record in caplog.records if record.exc_info], "a traceback was logged"
+
+
+def test_idle_tabs_that_go_mid_write_leave_no_traceback(server, caplog):
+    frame = {"type": "set_property", "path": "/a", "property": "value", "value": "x" * 200_000}
+
+    async def idle_tabs() -> None:
+        sockets = [await _socket(server) for _ in range(20)]  # they never read
+        assert await _after(lambda: len(server.clients) == 20)
+        for _ in range(20):
+            server.send(frame, key="big")
+        for socket in sockets:
+            socket.close()
+
+    asyncio.run(idle_tabs())
+    assert _until(lambda: server.clients == [])
+    for _ in range(5):
+        server.send(frame)  # to no one
+    gc.collect()
+    assert _get(server) == 200
+    assert not [record for record in caplog.records if record.exc_info], "a traceback was logged"
+    assert not [record for record in caplog.records if "never retrieved" in record.getMessage()]
