@@ -5,8 +5,8 @@ Taichi holds one architecture per process, so a test process runs its kernels on
 over that choice, so every kernel test runs on CPU here and on CUDA on a GPU machine; run
 ``pytest --device cpu`` there for the CPU pass.
 
-Markers: ``data`` (touches the shared data folder) and ``slow`` (seconds to tens of seconds each): ``pytest -m "not
-slow"`` is the quick pass for development; the default run, CI's, runs every test.
+Markers: ``data`` (touches the shared data folder), ``browser`` (drives chromium) and ``slow`` (seconds to tens of
+seconds each): ``pytest -m "not slow"`` is the quick pass for development; the default run, CI's, runs every test.
 """
 
 from __future__ import annotations

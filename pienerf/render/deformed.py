@@ -585,8 +585,6 @@ class DeformedRenderer:
             raise ValueError(f"q must be the model's DOFs {list(expected)}, got {list(getattr(q, 'shape', []))}")
         return q.to(dtype=torch.float64, device=self.model.device)
 
-    _check_q = check_q  # the former name, kept while callers move to check_q
-
     def _rays(self, cameras, rays, view, resolution):
         device = backend.torch_device()
         if (cameras is None) == (rays is None):

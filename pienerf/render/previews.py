@@ -321,7 +321,7 @@ class NerfRenderBackend:
     def _deformed_frame(self, q: torch.Tensor):
         """The renderer's per-q state, rebuilt only when q changes (a still body renders several views cheaply)."""
         if self._frame is None or self._frame_q.shape != q.shape or not torch.equal(self._frame_q, q.detach()):
-            self._frame = self.renderer.frame(self.renderer._check_q(q))
+            self._frame = self.renderer.frame(self.renderer.check_q(q))
             self._frame_q = q.detach().clone()
         return self._frame
 
