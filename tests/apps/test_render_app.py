@@ -376,18 +376,18 @@ def test_a_sound_render_reports_no_failed_line_search(device, tmp_path, capsys):
     assert metrics["time_breakdown"]["newton_iterations"] > metrics["time_breakdown"]["steps"]
 
 
-def test_a_missing_video_encoder_is_refused_before_any_work(tmp_path, monkeypatch, capsys):
+def test_a_missing_video_encoder_is_refused_before_any_work(device, tmp_path, monkeypatch, capsys):
     find_spec = importlib.util.find_spec
     monkeypatch.setattr(
         importlib.util, "find_spec", lambda name, *args: None if name == "imageio_ffmpeg" else find_spec(name, *args)
     )
     out = tmp_path / "out"
-    assert render.main([str(_tiny_scenario(tmp_path, mp4=True)), "--out", str(out), "--device", "cpu"]) == 2
+    assert render.main([str(_tiny_scenario(tmp_path, mp4=True)), "--out", str(out), "--device", device]) == 2
     error = capsys.readouterr().err
     assert "pip install imageio-ffmpeg" in error and "mp4 = false" in error
     assert not out.exists()  # refused before any work
     # without a video, the same machine renders the frames
-    assert render.main([str(_tiny_scenario(tmp_path, frames=1)), "--out", str(out), "--device", "cpu"]) == 0
+    assert render.main([str(_tiny_scenario(tmp_path, frames=1)), "--out", str(out), "--device", device]) == 0
 
 
 @pytest.mark.parametrize("name", ["../escaped", "a/b", ".hidden", "", "tab\t"])
@@ -440,12 +440,12 @@ def test_an_earlier_render_in_the_out_folder_is_cleared_and_said(device, tmp_pat
     ],
     ids=["empty", "garbage", "nan"],
 )
-def test_a_bad_mesh_scene_is_named_for_what_is_wrong(tmp_path, capsys, content, says):
+def test_a_bad_mesh_scene_is_named_for_what_is_wrong(device, tmp_path, capsys, content, says):
     mesh = tmp_path / "body.obj"
     mesh.write_bytes(content)
     scenario = _tiny_scenario(tmp_path)
     scenario.write_text(scenario.read_text().replace('name = "jelly"', f'name = "{mesh}"'))
-    assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--device", "cpu"]) == 2
+    assert render.main([str(scenario), "--out", str(tmp_path / "out"), "--device", device]) == 2
     error = capsys.readouterr().err
     assert says in error and "watertight" not in error
 
