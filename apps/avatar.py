@@ -71,6 +71,13 @@ def _parser() -> argparse.ArgumentParser:
         "guessed from its height",
     )
     sim.add_argument("--motion", default="walk", help="walk, turn, raise, jump or a .bvh file")
+    sim.add_argument(
+        "--joint-map",
+        default=None,
+        metavar="OURS=THEIRS,...",
+        help="for a .bvh motion whose joints are named differently: our joint names mapped to the file's, e.g. "
+        "pelvis=Hips,spine1=Spine (the joints not named keep the best-matching built-in naming)",
+    )
     sim.add_argument("--frames", type=int, default=100, help="simulated frames (steps of 1/fps s)")
     sim.add_argument("--out", type=Path, required=True, help="output folder")
     sim.add_argument("--device", choices=backend.DEVICES, default=None, help="default: cuda when present")
@@ -122,6 +129,23 @@ def _parser() -> argparse.ArgumentParser:
         if name == "estimate":
             stage.add_argument("--exact", action="store_true", help="fit the true meshes instead of the tracked ones")
     return parser
+
+
+def _joint_map(text: str | None, body: Body) -> dict[str, str] | None:
+    """``--joint-map``'s ``ours=theirs,...`` as load_bvh's name map (over the built-in naming that fits best), or
+    ``None``; a malformed pair or a joint we do not have is a ValueError naming it."""
+    if text is None:
+        return None
+    names = body.skeleton.names
+    mapping = {}
+    for pair in text.split(","):
+        ours, sep, theirs = (part.strip() for part in pair.partition("="))
+        if not sep or not ours or not theirs:
+            raise ValueError(f"--joint-map takes ours=theirs pairs separated by commas, got {pair!r}")
+        if ours not in names:
+            raise ValueError(f"--joint-map names {ours!r}, which is not one of our joints: {', '.join(names)}")
+        mapping[ours] = theirs
+    return mapping
 
 
 def _check_motion(name: str) -> None:
@@ -211,7 +235,10 @@ def simulate_command(args: argparse.Namespace) -> int:
     if args.motion in MOTIONS:
         motion = named_motion(args.motion, body.skeleton, frames)
     else:
-        motion = load_bvh(Path(args.motion), body.skeleton)
+        try:
+            motion = load_bvh(Path(args.motion), body.skeleton, name_map=_joint_map(args.joint_map, body))
+        except ValueError as error:
+            raise ValueError(f"{error}: --joint-map ours=theirs,... on this command line") from None
     boundary = select_boundary(garment, body, mode=args.boundary)
     try:
         result = sim.simulate(garment, body, motion, frames=frames, boundary=boundary)

@@ -43,7 +43,7 @@ BVH_NAME_MAPS: dict[str, dict[str, str]] = {
 }  # fmt: skip
 """Our joint name → BVH joint name, per naming scheme. ``smpl`` is the identity (our own files); Mixamo
 names are matched after dropping a ``prefix:`` such as ``mixamorig:``. The scheme that matches most
-joints of a file is used unless ``name_map`` is given."""
+joints of a file is used, with the joints ``name_map`` names mapped as it says."""
 
 REQUIRED_JOINTS = tuple(
     f"{side}_{limb}" for side in ("left", "right") for limb in ("hip", "knee", "ankle", "shoulder", "elbow")
@@ -228,16 +228,15 @@ def _resolve_names(
 ) -> dict[str, int]:
     """Our joint name → index of the BVH joint, checking that the required joints are present."""
     plain = {name.split(":")[-1].lower(): i for i, name in enumerate(joint_names)}
-    if name_map is None:
-        candidates = [{ours: BVH_NAME_MAPS[s].get(ours, ours) for ours in skeleton.names} for s in BVH_NAME_MAPS]
-        name_map = max(candidates, key=lambda m: sum(v.lower() in plain for v in m.values()))
+    candidates = [{ours: BVH_NAME_MAPS[s].get(ours, ours) for ours in skeleton.names} for s in BVH_NAME_MAPS]
+    name_map = {**max(candidates, key=lambda m: sum(v.lower() in plain for v in m.values())), **(name_map or {})}
     found = {ours: plain[theirs.split(":")[-1].lower()] for ours, theirs in name_map.items()
              if theirs.split(":")[-1].lower() in plain}  # fmt: skip
     missing = [f"{ours} (as {name_map.get(ours, ours)!r})" for ours in REQUIRED_JOINTS if ours not in found]
     if missing:
         raise ValueError(
             f"{path}: no BVH joint for {', '.join(missing)}; the file's joints are {', '.join(joint_names)}. "
-            "Pass name_map={our_joint: bvh_joint} for the joints named differently"
+            "Map the joints named differently, ours to the file's (load_bvh's name_map)"
         )
     return found
 
@@ -262,7 +261,8 @@ def load_bvh(
     Args:
         path: the ``.bvh`` file.
         skeleton: the skeleton to retarget onto.
-        name_map: our joint name → BVH joint name; ``None`` picks the best of :data:`BVH_NAME_MAPS`.
+        name_map: our joint name → BVH joint name, over the best-matching naming of :data:`BVH_NAME_MAPS` (which
+            alone serves where ``None``).
         unit_scale: metres per file unit; ``None`` uses the ratio of our leg length (hip to ankle) to
             the file's, which converts units and retargets the root motion to our body's size at once.
         start_at_origin: shift the root horizontally so that it starts above the origin.

@@ -5,6 +5,7 @@ import random
 import pytest
 import torch
 
+from apps import avatar
 from physavatar.body import MAX_BVH_FRAMES, Motion, Skeleton, load_bvh, save_bvh, walk
 
 
@@ -155,3 +156,31 @@ def test_fuzzed_bvh_files_load_or_fail_clearly(skeleton, clip_lines, tmp_path):
             assert torch.isfinite(motion.rotations).all() and torch.isfinite(motion.root_translation).all()
             outcomes["loaded"] += 1
     assert outcomes["loaded"] > 5 and outcomes["refused"] > 50, outcomes
+
+
+def _renamed(lines: list[str], ours: str, theirs: str) -> list[str]:
+    """The clip with the joint ``ours`` called ``theirs`` in the hierarchy."""
+    return [line.replace(f" {ours}", f" {theirs}") if line.strip() in (f"ROOT {ours}", f"JOINT {ours}") else line
+            for line in lines]  # fmt: skip
+
+
+def test_a_joint_named_differently_is_named_and_mapped(skeleton, clip_lines, tmp_path):
+    path = _write(tmp_path, _renamed(clip_lines, "left_knee", "LeftLeg_2"))
+    with pytest.raises(ValueError, match=r"no BVH joint for left_knee \(as 'left_knee'\).*LeftLeg_2.*name_map"):
+        load_bvh(path, skeleton)
+    mapped = load_bvh(path, skeleton, name_map={"left_knee": "LeftLeg_2"})
+    plain = load_bvh(_write(tmp_path, clip_lines, "plain.bvh"), skeleton)
+    assert torch.equal(mapped.rotations, plain.rotations)
+    assert torch.equal(mapped.root_translation, plain.root_translation)
+
+
+def test_the_command_line_maps_joints_and_names_a_bad_pair(clip_lines, tmp_path, capsys):
+    path = _write(tmp_path, _renamed(clip_lines, "left_knee", "LeftLeg_2"))
+    out = tmp_path / "out"
+    assert avatar.main(["simulate", "--motion", str(path), "--smoke", "--device", "cpu", "--out", str(out)]) == 2
+    assert "--joint-map ours=theirs" in capsys.readouterr().err
+    for bad, says in (("left_knee", "ours=theirs pairs"), ("kneee=LeftLeg_2", "'kneee', which is not one of")):
+        args = ["simulate", "--motion", str(path), "--joint-map", bad, "--smoke", "--device", "cpu", "--out", str(out)]
+        assert avatar.main(args) == 2
+        assert says in capsys.readouterr().err
+    assert not out.exists()
