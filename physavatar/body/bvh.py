@@ -362,7 +362,7 @@ def save_bvh(motion: Motion, path: str | Path, skeleton: Skeleton) -> None:
     The hierarchy is ``skeleton`` at rest (end effectors get an End Site at their bone tail); the root
     has position channels holding its world position.
     """
-    motion._check_skeleton(skeleton)
+    motion.check_skeleton(skeleton)
     cm = 100.0
     rest = skeleton.rest_positions.cpu().numpy().astype(np.float64)
     tails = skeleton.rest_tails.cpu().numpy().astype(np.float64)

@@ -68,7 +68,7 @@ class Motion:
 
     def joint_positions(self, skeleton: Skeleton) -> torch.Tensor:
         """[T, J, 3] world joint positions of every frame, metres."""
-        self._check_skeleton(skeleton)
+        self.check_skeleton(skeleton)
         return skeleton.joint_positions(self.rotations, self.root_translation)
 
     def angular_speeds(self) -> torch.Tensor:
@@ -77,7 +77,8 @@ class Motion:
         cos = ((relative.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
         return torch.arccos(cos) * self.fps
 
-    def _check_skeleton(self, skeleton: Skeleton):
+    def check_skeleton(self, skeleton: Skeleton) -> None:
+        """Refuse a skeleton whose joints are not the ones this motion poses (ValueError)."""
         if tuple(skeleton.names) != tuple(self.joint_names):
             raise ValueError("the motion was made for another skeleton: its joint names differ from the skeleton's")
 
