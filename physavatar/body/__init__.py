@@ -13,26 +13,40 @@ SMPL-X is not freely licensed, so this package builds a procedural mannequin in 
 
 from physavatar.body.body import Body
 from physavatar.body.bvh import BVH_NAME_MAPS, MAX_BVH_FRAMES, REQUIRED_JOINTS, load_bvh, save_bvh
+from physavatar.body.mannequin import bone_distances, mannequin_mesh, skinning_weights
 from physavatar.body.motion import MOTIONS, Motion, jump, named_motion, raise_arms, turn, walk
-from physavatar.body.skeleton import JOINT_NAMES, JOINT_PARENTS, Skeleton, axis_angle_to_matrix, linear_blend_skinning
+from physavatar.body.skeleton import (
+    JOINT_NAMES,
+    JOINT_PARENTS,
+    REFERENCE_HEIGHT,
+    Skeleton,
+    axis_angle_to_matrix,
+    linear_blend_skinning,
+    mannequin_joints,
+)
 
 __all__ = [
     "BVH_NAME_MAPS",
+    "Body",
     "JOINT_NAMES",
     "JOINT_PARENTS",
     "MAX_BVH_FRAMES",
     "MOTIONS",
-    "REQUIRED_JOINTS",
-    "Body",
     "Motion",
+    "REFERENCE_HEIGHT",
+    "REQUIRED_JOINTS",
     "Skeleton",
     "axis_angle_to_matrix",
+    "bone_distances",
     "jump",
     "linear_blend_skinning",
     "load_bvh",
+    "mannequin_joints",
+    "mannequin_mesh",
     "named_motion",
     "raise_arms",
     "save_bvh",
+    "skinning_weights",
     "turn",
     "walk",
 ]

@@ -65,10 +65,37 @@ The package's modules, each built from the ones before it:
 """
 
 from physavatar.cloth.config import DENSITY_RANGE, LINEAR_SOLVERS, STIFFNESS_RANGE, ClothConfig
-from physavatar.cloth.contact import friction_potential
-from physavatar.cloth.newton_loop import PHASES
-from physavatar.cloth.newton_system import DENSE_MAX_DOFS
-from physavatar.cloth.potential import ClothEnergies, barrier_stiffness, bending_stiffness, lumped_masses
+from physavatar.cloth.contact import (
+    PARALLEL_SIN2,
+    REACH,
+    TREE_REBUILD,
+    ClothContact,
+    ContactCover,
+    ContactPairs,
+    GarmentDistances,
+    LaggedFriction,
+    compact_rows,
+    friction_potential,
+    garment_distances,
+    keep_pairs,
+)
+from physavatar.cloth.newton_loop import PHASES, AssembledSystem, LoopRead, NewtonLoop, PhaseTimer
+from physavatar.cloth.newton_system import (
+    DENSE_MAX_DOFS,
+    LinearSolver,
+    NewtonElement,
+    NewtonMatrices,
+    NewtonMatrix,
+    filtered_elements,
+)
+from physavatar.cloth.potential import (
+    ClothEnergies,
+    IncrementalPotential,
+    StepContext,
+    barrier_stiffness,
+    bending_stiffness,
+    lumped_masses,
+)
 from physavatar.cloth.rollout import ClothRollout, RolloutScene, rollout
 from physavatar.cloth.solver import (
     SENSITIVITY_PARAMETERS,
@@ -80,24 +107,46 @@ from physavatar.cloth.solver import (
 )
 
 __all__ = [
+    "AssembledSystem",
     "ClothConfig",
+    "ClothContact",
     "ClothControl",
     "ClothEnergies",
+    "ClothRollout",
     "ClothState",
+    "ClothStepReport",
+    "ContactCover",
+    "ContactPairs",
     "DENSE_MAX_DOFS",
     "DENSITY_RANGE",
+    "GarmentDistances",
+    "IncrementalPotential",
     "LINEAR_SOLVERS",
+    "LaggedFriction",
+    "LinearSolver",
+    "LoopRead",
+    "NewtonElement",
+    "NewtonLoop",
+    "NewtonMatrices",
+    "NewtonMatrix",
+    "PARALLEL_SIN2",
     "PHASES",
+    "PhaseTimer",
+    "REACH",
+    "RolloutScene",
     "SENSITIVITY_PARAMETERS",
     "STIFFNESS_RANGE",
     "SolverCloth",
-    "ClothStepReport",
+    "StepContext",
+    "StepLinearisation",
+    "TREE_REBUILD",
     "barrier_stiffness",
     "bending_stiffness",
+    "compact_rows",
+    "filtered_elements",
     "friction_potential",
+    "garment_distances",
+    "keep_pairs",
     "lumped_masses",
-    "ClothRollout",
-    "RolloutScene",
-    "StepLinearisation",
     "rollout",
 ]

@@ -1,7 +1,15 @@
 """Rendering a simulated body: quadratic ray warping of the NeRF (Eq. 19–21), the previews a viewer shows, the
 resolution schedule that keeps them inside a frame budget, mesh refinement and the warp-error probe (Fig. 8)."""
 
-from pienerf.render.deformed import LIGHT_DIRECTION, MODES, DeformedFrame, DeformedRenderer, GroundPlane, RenderStats
+from pienerf.render.deformed import (
+    LIGHT_DIRECTION,
+    MODES,
+    DeformedFrame,
+    DeformedRenderer,
+    GroundPlane,
+    RenderStats,
+    bucket_size,
+)
 from pienerf.render.mesh_refine import MAX_REFINED_VERTICES, split_long_edges
 from pienerf.render.previews import (
     Frame,
@@ -32,6 +40,7 @@ __all__ = [
     "SILHOUETTE_ALPHA",
     "ViewRays",
     "WarpErrorProbe",
+    "bucket_size",
     "region_error",
     "region_mask",
     "split_long_edges",

@@ -2,9 +2,15 @@
 and device Newton loops over it, and :class:`SolverQGMLS`, which composes them."""
 
 from pienerf.sim.solver.config import SolverConfig
-from pienerf.sim.solver.device_loop import PHASES, DeviceLoop, DeviceLoopStep, PhaseTimer, device_loop_key
-from pienerf.sim.solver.host_loop import HostLoop
-from pienerf.sim.solver.potential import LINE_SEARCH_FAILURES, QGMLSPotential, StepContext
+from pienerf.sim.solver.device_loop import LOOP_STATS, PHASES, DeviceLoop, DeviceLoopStep, PhaseTimer, device_loop_key
+from pienerf.sim.solver.host_loop import HostLoop, spd_factor, spd_solve
+from pienerf.sim.solver.potential import (
+    LINE_SEARCH_FAILURES,
+    QGMLSPotential,
+    StepContext,
+    collider_distance,
+    collider_placement,
+)
 from pienerf.sim.solver.solver import SolverQGMLS
 from pienerf.sim.solver.state import (
     PlaneCollider,
@@ -17,11 +23,12 @@ from pienerf.sim.solver.state import (
 )
 
 __all__ = [
-    "LINE_SEARCH_FAILURES",
-    "PHASES",
     "DeviceLoop",
     "DeviceLoopStep",
     "HostLoop",
+    "LINE_SEARCH_FAILURES",
+    "LOOP_STATS",
+    "PHASES",
     "PhaseTimer",
     "PlaneCollider",
     "PointForces",
@@ -34,5 +41,9 @@ __all__ = [
     "SolverQGMLS",
     "SphereCollider",
     "StepContext",
+    "collider_distance",
+    "collider_placement",
     "device_loop_key",
+    "spd_factor",
+    "spd_solve",
 ]
