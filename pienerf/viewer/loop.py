@@ -16,10 +16,11 @@ from typing import Protocol
 
 import numpy as np
 
+from pienerf.nerf.fitting import NerfFit
 from pienerf.render.previews import Frame
 from pienerf.render.refinement import RefinementSchedule
 from pienerf.scenes import SCENES
-from pienerf.viewer.nerf_job import NerfJob, load_nerf
+from pienerf.viewer.nerf_job import NerfJob, load_nerf, shipped_nerf
 
 __all__ = [
     "CONTROL_RANGES",
@@ -244,6 +245,7 @@ class DemoApp:
         self.nerf_job: NerfJob | None = None
         self._nerf_ready: Callable[[], object] | None = None
         self._nerf_shown = 0  # fits of the current job loaded into the simulation
+        self._refinement_started = False  # the shipped NeRF's background refinement
         viewer.attach(self)
 
     def submit(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
@@ -282,21 +284,30 @@ class DemoApp:
     def fit_nerf(self, then: Callable[[], object]) -> None:
         """Make the ``"nerf"`` render mode available, then call ``then`` (in the loop thread).
 
-        A given checkpoint, or one already loaded, is used at once. Otherwise the scene's NeRF is fitted (or loaded
-        from the cache) by a :class:`pienerf.viewer.nerf_job.NerfJob` while the loop goes on stepping; ``then`` runs
-        once the first (coarse) NeRF is loaded, and the refined one replaces it when ready.
+        A given checkpoint, one already loaded, or the NeRF that ships with the scene
+        (:func:`pienerf.viewer.nerf_job.shipped_nerf`, when no other fit is asked for) is used at once; after the
+        shipped one the default fit is made (or loaded from the cache) in the background and replaces it when
+        ready. Otherwise the scene's NeRF is fitted (or loaded from the cache) by a
+        :class:`pienerf.viewer.nerf_job.NerfJob` while the loop goes on stepping; ``then`` runs once the first
+        (coarse) NeRF is loaded, and the refined one replaces it when ready.
         """
-        sim = self.simulation
-        if "nerf" in sim.render_backends or self.nerf_options.get("checkpoint") is not None:
-            load_nerf(sim, **self.nerf_options)
-            then()
-            return
+        sim, options = self.simulation, self.nerf_options
         if self.nerf_job is not None:
             raise ValueError("the NeRF is already being fitted (see the progress bar); it shows when ready")
+        shipped = options.get("checkpoint") is None and shipped_nerf(sim.config.scene, options.get("fit"))
+        if "nerf" in sim.render_backends or options.get("checkpoint") is not None or shipped:
+            load_nerf(sim, **options)
+            then()
+            if shipped and options.get("fit") is None and not self._refinement_started:
+                self._refinement_started = True
+                self._start_nerf_job(NerfFit(), then)
+            return
         if sim.config.scene not in SCENES:
-            load_nerf(sim, **self.nerf_options)  # raises with the fix for a mesh scene
-        options = self.nerf_options
-        self.nerf_job = NerfJob(sim.config.scene, options.get("fit"), options.get("cache_dir"))
+            load_nerf(sim, **options)  # raises with the fix for a mesh scene
+        self._start_nerf_job(options.get("fit"), then)
+
+    def _start_nerf_job(self, fit, then: Callable[[], object]) -> None:
+        self.nerf_job = NerfJob(self.simulation.config.scene, fit, self.nerf_options.get("cache_dir"))
         self._nerf_ready, self._nerf_shown = then, 0
         self.viewer.show_progress("NeRF: starting the fit", 0.0)
         self.viewer.report("fitting the NeRF in the background; the simulation goes on")
@@ -311,7 +322,7 @@ class DemoApp:
         if job.ready > self._nerf_shown:  # a fit is in the cache: show it (the first), or put it in its place
             index, self._nerf_shown = job.ready - 1, job.ready
             options = {**self.nerf_options, "fit": job.fits[index]}
-            if index == 0:
+            if "nerf" not in self.simulation.render_backends:
                 self._run("NeRF load", lambda: (load_nerf(self.simulation, **options), self._nerf_ready()))
             else:
                 self._run("NeRF refinement", lambda: load_nerf(self.simulation, replace=True, **options))
