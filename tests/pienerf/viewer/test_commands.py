@@ -11,10 +11,11 @@ import torch
 
 from kernels import backend
 from pienerf.nerf.fitting import NerfFit
+from pienerf.nerf.training import load_checkpoint
 from pienerf.viewer import build_app, loop
 from pienerf.viewer.loop import MAX_PENDING_COMMANDS, REST_FRAMES, CommandQueue
 from pienerf.viewer.meshcat_viewer import MeshcatViewer
-from pienerf.viewer.nerf_job import FIRST_FIT
+from pienerf.viewer.nerf_job import FIRST_FIT, shipped_nerf, shipped_nerf_path
 
 CLIENT = 1
 _Z = torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)  # a drag ray starts this far in front of its point
@@ -211,3 +212,19 @@ def test_the_default_fit_refines_the_shipped_nerf_in_the_background(monkeypatch)
         assert app.simulation.render_backends["nerf"] is not shipped, "the default fit did not replace the shipped NeRF"
     finally:
         app.close()
+
+
+def test_the_shipped_nerf_is_compact_loads_and_matches_the_first_fit(device):
+    """The plant's shipped NeRF is named by the viewer's first fit (a changed fit or recipe must regenerate it:
+    ``python -m apps.demo --build-nerf-asset``), stores float16 weights in under 2 MB, and the checkpoint loader
+    reads it as float32 with the first fit's architecture."""
+    path = shipped_nerf_path("plant")
+    assert path.is_file(), "the plant's NeRF asset is missing or stale: run python -m apps.demo --build-nerf-asset"
+    assert path.stat().st_size < 2 * 2**20
+    stored = torch.load(path, map_location="cpu", weights_only=True)
+    assert stored["field"]["encoding.table"].dtype == torch.float16 and stored["optimizer"] is None
+    trained = load_checkpoint(path)
+    assert trained.field.config == FIRST_FIT.ngp
+    assert all(p.dtype == torch.float32 for p in trained.field.parameters())
+    assert shipped_nerf("plant") and shipped_nerf("plant", FIRST_FIT) and not shipped_nerf("plant", NerfFit())
+    assert not shipped_nerf("teapot")
