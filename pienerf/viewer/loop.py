@@ -15,6 +15,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
+import torch
 
 from pienerf.nerf.fitting import NerfFit
 from pienerf.render.previews import Frame
@@ -33,6 +34,9 @@ __all__ = [
     "NerfSchedules",
     "Viewer",
     "control_value",
+    "nerf_image",
+    "number_in",
+    "picked_text",
     "render_nerf_in_budget",
     "si_text",
     "vector3",
@@ -124,10 +128,7 @@ class CommandQueue:
 
 def control_value(name: str, value) -> float:
     """``value`` of the control ``name`` (:data:`CONTROL_RANGES`) as a float, or a ValueError naming the range."""
-    lo, hi = CONTROL_RANGES[name]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-        raise ValueError(f"{name.replace('_', ' ')} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
-    return float(value)
+    return number_in(value, name.replace("_", " "), *CONTROL_RANGES[name])
 
 
 def si_text(value: float, unit: str) -> str:
@@ -184,6 +185,27 @@ def render_nerf_in_budget(app: DemoApp, schedule: RefinementSchedule, cameras, l
     frame = sim.render(cameras, 0, "nerf", downscale=level)  # synchronised: the frame is ready when it returns
     schedule.record(level, time.perf_counter() - clock, 0.0 if app.paused else sim.last_report.time_step)
     return frame
+
+
+def nerf_image(app: DemoApp, schedule: RefinementSchedule, cameras, level: int, background: torch.Tensor):
+    """``(image, frame)``: the warped NeRF (:func:`render_nerf_in_budget`) over ``background`` (RGB in [0, 1]) as an
+    ``[H, W, 3]`` uint8 array, and the :class:`pienerf.render.previews.Frame` it came from (for its depth)."""
+    frame = render_nerf_in_budget(app, schedule, cameras, level)
+    alpha = frame.rgba[..., 3:]
+    rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * background.to(alpha)
+    return (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy(), frame
+
+
+def picked_text(hit) -> str:
+    """The message of a pick: the picked material point (rest space, m), or that nothing was hit."""
+    return "picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)"
+
+
+def number_in(value, what: str, lo: float, hi: float) -> float:
+    """``value`` as a float when it is a number in ``[lo, hi]`` (not a bool), else a ValueError naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+        raise ValueError(f"{what} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
+    return float(value)
 
 
 def vector3(value, what: str) -> np.ndarray:
@@ -248,9 +270,28 @@ class DemoApp:
         self._refinement_started = False  # the shipped NeRF's background refinement
         viewer.attach(self)
 
-    def submit(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
-        """Queue ``command`` to run in the loop thread between steps (``key`` and ``heavy`` as
-        :meth:`CommandQueue.put`, which raises ValueError when too many wait); wakes a sleeping loop."""
+    def submit(
+        self,
+        what: str,
+        command: Callable[[], object],
+        key: str | None = None,
+        heavy: bool = False,
+        report: Callable[[object], str] | None = None,
+    ) -> None:
+        """Queue ``command`` (a :class:`pienerf.session.Simulation` verb) to run in the loop thread between steps
+        (``key`` and ``heavy`` as :meth:`CommandQueue.put`, which raises ValueError when too many wait); wakes a
+        sleeping loop. ``report(result)``, when given, is the message the viewer shows once the command ran; after a
+        ``heavy`` command (which may show progress) the progress bar is hidden."""
+        if report is not None or heavy:
+            verb = command
+
+            def command() -> None:
+                result = verb()
+                if heavy and self.nerf_job is None:
+                    self.viewer.show_progress("", None)
+                if report is not None:
+                    self.viewer.report(report(result))
+
         self.commands.put(what, command, key, heavy)
         self.wake()
 
@@ -353,8 +394,7 @@ class DemoApp:
         if self.simulation.dragging:
             self.simulation.drag_to(origin, direction)
         else:
-            hit = self.simulation.pick(origin, direction)
-            self.viewer.report("picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3)}")
+            self.viewer.report(picked_text(self.simulation.pick(origin, direction)))
 
     def tick(self) -> None:
         """One frame: commands, the progress of a background fit, one step unless paused, display."""
