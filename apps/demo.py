@@ -4,6 +4,12 @@
                         [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
                         [--frame-budget-ms 33.3]
+    python -m apps.demo --build-nerf-asset
+
+``--build-nerf-asset`` fits the plant's coarse NeRF again with the project's own fitting code and writes the copy
+that ships in ``assets/nerf/`` (:func:`pienerf.viewer.nerf_job.build_nerf_asset`; float16 weights, under 1 MB); run
+it after a change to the plant, to the viewer's first fit or to the fitting recipe (the file's name holds the fit's
+digest, so a stale copy is never loaded for other settings).
 
 ``meshcat`` (default) serves meshcat's own three.js client under a page of the project
 (:class:`pienerf.viewer.meshcat_viewer.MeshcatViewer`): the deformed scene mesh updated every frame, a panel with the
@@ -25,10 +31,11 @@ render time, starting at a quarter), then once at full resolution when still. Th
 rendered views the first time, with progress in the terminal (or, when switched on in the panel, in a separate
 process while the simulation goes on, with progress in the panel), and cached as a checkpoint under the scene cache
 (``--cache-dir``, default ``$PIE_CACHE_DIR`` or ``~/.cache/pie-physavatar``), so later starts load it;
-``--nerf-checkpoint`` loads a given one instead (trained in the scene's coordinates). The default stays ``mesh``: on
-a CPU the first fit takes longer than a start may take (figures in ``docs/benchmarks.md``); later starts load the
-cached checkpoint. In viser's NeRF mode the body is picked by clicking (the mouse-drag handle belongs to the hidden
-mesh).
+``--nerf-checkpoint`` loads a given one instead (trained in the scene's coordinates). For the plant
+the NeRF ships with the project (``assets/nerf/``) and shows at once, while the default fit refines it in the
+background; for the other scenes the first fit takes longer than a start may take on a CPU (figures in
+``docs/benchmarks.md``), so the default stays ``mesh``; later starts load the cached checkpoint. In viser's NeRF
+mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
@@ -48,6 +55,7 @@ from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, T
 from kernels import backend
 from pienerf.nerf.cameras import orbit_cameras
 from pienerf.viewer import RENDER_MODES, VIEWERS, build_app
+from pienerf.viewer.nerf_job import build_nerf_asset
 from pienerf.viewer.origin import check_address
 
 
@@ -97,7 +105,18 @@ def main(argv: list[str] | None = None) -> int:
         help="milliseconds a NeRF frame may take while things move, step and render together (its resolution "
         "adapts to hold it)",
     )
+    parser.add_argument(
+        "--build-nerf-asset",
+        action="store_true",
+        help="fit the plant's coarse NeRF and write the copy shipped in assets/nerf/, then exit",
+    )
     args = parser.parse_args(argv)
+    if args.build_nerf_asset:
+        backend.init(args.device)
+        with _TerminalProgress() as progress:
+            path = build_nerf_asset("plant", progress=progress)
+        print(f"wrote {path}")
+        return 0
     try:
         check_address(args.host, args.port)
     except ValueError as error:

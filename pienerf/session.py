@@ -41,7 +41,7 @@ from pienerf.sim.cut import CutPlane
 from pienerf.sim.density import MeshDensity, load_mesh_file
 from pienerf.sim.materials import MATERIAL_MODELS, Material
 from pienerf.sim.model import DiscretizationConfig, QGMLSModel
-from pienerf.sim.picking import DragConfig, DragController, Interaction, PickHit
+from pienerf.sim.picking import DragConfig, DragController, Interaction, PickHit, PickSurface
 from pienerf.sim.sampling import poisson_disk_sample
 from pienerf.sim.settings import setting
 from pienerf.sim.solver import (
@@ -137,7 +137,8 @@ class SimulationConfig:
         mesh_edge_fraction: the ``"mesh"`` preview splits the mesh's edges until each is shorter than this fraction
             of the smallest kernel support radius (the length over which the Q-GMLS field bends), so a bent thin
             part shows its bend (:func:`pienerf.render.split_long_edges`); ``None`` renders the scene's mesh as
-            it is. Picking uses the refined surface; :meth:`deformed_mesh_vertices` keeps the scene's vertices.
+            it is. :meth:`deformed_mesh_vertices` keeps the scene's vertices; picking uses the scene's mesh
+            (:class:`pienerf.sim.picking.PickSurface`).
     """
 
     scene: str = "plant"
@@ -339,7 +340,7 @@ class Simulation:
             damping=damping,
             max_acceleration=self.config.drag.max_acceleration,
             density=self.material.density,
-            surface=self._mesh_backend.surface(),
+            surface=PickSurface(self.model, self.mesh_vertices, self.mesh_faces),
         )
         if getattr(self, "interaction", None) is None:
             pin_stiffness = self.config.pin_stiffness
@@ -458,8 +459,8 @@ class Simulation:
     # -- interaction ---------------------------------------------------------------------------
 
     def pick(self, ray_origin, ray_direction) -> PickHit | None:
-        """Pick on the deformed mesh (else the particles) with a ray; starts a drag."""
-        self._mesh_backend.deform(self.state.q)
+        """Pick on the body's surface (its scene mesh deformed by the model, else the particles) with a ray; starts a
+        drag. What the viewer draws (mesh, particles or NeRF) plays no part."""
         return self.interaction.drag.pick(ray_origin, ray_direction, self.state.q)
 
     def drag_to(self, ray_origin=None, ray_direction=None, *, target=None) -> torch.Tensor:
@@ -569,7 +570,7 @@ class Simulation:
 
     def deformed_mesh_vertices(self) -> torch.Tensor:
         """``[V, 3]`` float32 scene mesh vertices at the current state (m), a new tensor the caller owns (the mesh
-        backend deforms its picking surface in place, so a view of it would change under the caller). With
+        backend deforms its vertices in place, so a view of them would change under the caller). With
         ``mesh_edge_fraction`` these are the leading vertices of the refined preview mesh: the scene's own, which
         :attr:`mesh_faces` index."""
         return self._mesh_backend.deform(self.state.q)[: self.mesh_vertices.shape[0]].to("cpu", copy=True)

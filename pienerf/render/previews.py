@@ -33,7 +33,6 @@ from pienerf.nerf.field import OccupancyGrid
 from pienerf.render.deformed import LIGHT_DIRECTION, MODES, DeformedRenderer, GroundPlane
 from pienerf.render.mesh_refine import split_long_edges
 from pienerf.sim.model import QGMLSModel
-from pienerf.sim.picking import PickSurface
 from pienerf.sim.solver import PlaneCollider, SphereCollider
 
 __all__ = [
@@ -163,10 +162,6 @@ class MeshRenderBackend:
             self._scene_faces[: self._body_faces].cpu(),
             self._scene_colors[: self.body_vertices].cpu(),
         )
-
-    def surface(self) -> PickSurface:
-        """The deformed mesh to pick on (kept current by :meth:`deform`)."""
-        return PickSurface(self.bvh, self.rest_vertices, self.body_vertices)
 
     def render(self, q: torch.Tensor, cameras: Cameras, view: int, shadow: bool = False) -> Frame:
         self.deform(q)

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import torch
 
+from kernels import backend
+from kernels.raycast import MeshBVH
 from pienerf.sim.cut import CutPlane
 from pienerf.sim.model import PointHandle, QGMLSModel
 from pienerf.sim.settings import setting
@@ -60,20 +62,42 @@ class PickHit:
     particle: int
 
 
-@dataclass
 class PickSurface:
-    """A deformed surface mesh to pick on: a BVH kept at the current deformation and the rest vertices.
+    """The body's own surface to pick on: its rest mesh deformed by the model (Eq. 9), with a BVH refitted to q.
+
+    Independent of what the viewer draws (a mesh, the particles or a warped NeRF): built from the scene mesh and the
+    discretised body, refitted only when a pick asks for a new q.
+
+    Args:
+        model: the discretised body whose field moves the vertices.
+        vertices: ``[V, 3]`` rest vertices of the body's surface (m).
+        faces: ``[F, 3]`` vertex indices.
 
     Attributes:
-        bvh: :class:`kernels.raycast.MeshBVH` whose vertices are the deformed surface (the renderer refits it).
-        rest_vertices: ``[V, 3]`` rest positions (m) of the BVH's vertices, same order; vertices
-            with index ≥ ``body_vertices`` (e.g. a ground plane) are not part of the body and cannot be picked.
-        body_vertices: number of leading vertices that belong to the body.
+        rest_vertices: ``[V, 3]`` float64 rest positions (m) on the CPU, the order of ``vertices``.
+        bvh: :class:`kernels.raycast.MeshBVH` of the surface at the last q given to :meth:`at`.
     """
 
-    bvh: object
-    rest_vertices: torch.Tensor
-    body_vertices: int
+    def __init__(self, model: QGMLSModel, vertices: torch.Tensor, faces: torch.Tensor):
+        vertices = torch.as_tensor(vertices)
+        faces = torch.as_tensor(faces)
+        if vertices.dim() != 2 or vertices.shape[1] != 3 or faces.dim() != 2 or faces.shape[1] != 3:
+            raise ValueError(
+                f"a pick surface needs vertices [V, 3] and faces [F, 3], got {tuple(vertices.shape)} and "
+                f"{tuple(faces.shape)}: pass the scene mesh's rest vertices and triangles"
+            )
+        device = backend.torch_device()
+        self.rest_vertices = vertices.detach().double().cpu()
+        self.handle: PointHandle = model.handle(self.rest_vertices)
+        self.bvh = MeshBVH(self.rest_vertices.float().to(device), faces.to(device=device, dtype=torch.int32))
+        self._q: torch.Tensor | None = None
+
+    def at(self, q: torch.Tensor):
+        """The BVH with the vertices at x(X) for ``q [nT, 3]`` (refitted unless q is the last one's)."""
+        if self._q is None or self._q.shape != q.shape or not torch.equal(self._q, q.detach()):
+            self.bvh.refit(self.handle.positions(q).to(self.bvh.vertices))
+            self._q = q.detach().clone()
+        return self.bvh
 
 
 def _unit(vector: torch.Tensor, what: str) -> torch.Tensor:
@@ -236,7 +260,7 @@ class DragController:
         density: ρ of the body (kg/m³), for the effective mass; update it with the material.
         pick_radius: particles within this distance of the ray can be picked (m); default 1.5 times the median
             particle spacing V^(1/3).
-        surface: optional deformed mesh to pick on first (the particles are the fallback).
+        surface: optional :class:`PickSurface` of the body to pick on first (the particles are the fallback).
     """
 
     def __init__(
@@ -283,7 +307,7 @@ class DragController:
         Args:
             ray_origin: ``[3]`` (m).
             ray_direction: ``[3]`` (normalised here).
-            q: ``[nT, 3]`` current generalized coordinates (the surface, when given, must be at this q).
+            q: ``[nT, 3]`` current generalized coordinates.
 
         Returns:
             The :class:`PickHit`, which starts a drag with the target at the picked point, or ``None`` (a miss
@@ -291,7 +315,7 @@ class DragController:
         """
         origin = _vec3(ray_origin, "ray origin")
         direction = _unit(_vec3(ray_direction, "ray direction"), "ray direction")
-        hit = self._pick_surface(origin, direction) if self.surface is not None else None
+        hit = self._pick_surface(origin, direction, q) if self.surface is not None else None
         if hit is None:
             world = self.model.particles.positions(q).cpu()
             found = ray_particle_pick(origin, direction, world, self.pick_radius)
@@ -318,19 +342,17 @@ class DragController:
         self.target = hit.world.clone()
         return hit
 
-    def _pick_surface(self, origin: torch.Tensor, direction: torch.Tensor) -> PickHit | None:
-        surface = self.surface
-        device = surface.bvh.vertices.device
-        hits = surface.bvh.cast(origin[None].float().to(device), direction[None].float().to(device))
+    def _pick_surface(self, origin: torch.Tensor, direction: torch.Tensor, q: torch.Tensor) -> PickHit | None:
+        bvh = self.surface.at(q)
+        device = bvh.vertices.device
+        hits = bvh.cast(origin[None].float().to(device), direction[None].float().to(device))
         face = int(hits.face[0])
         if face < 0:
             return None
-        corners = surface.bvh.faces[face].long()
-        if int(corners.max()) >= surface.body_vertices:
-            return None
+        corners = bvh.faces[face].long().cpu()
         b1, b2 = (float(v) for v in hits.bary[0])
         weights = torch.tensor([1.0 - b1 - b2, b1, b2], dtype=torch.float64)
-        rest = weights @ surface.rest_vertices[corners].double().cpu()
+        rest = weights @ self.surface.rest_vertices[corners]
         world = origin + float(hits.t[0]) * direction
         return PickHit(rest, world, float(hits.t[0]), -1)
 

@@ -15,11 +15,13 @@ from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
+import torch
 
+from pienerf.nerf.fitting import NerfFit
 from pienerf.render.previews import Frame
 from pienerf.render.refinement import RefinementSchedule
 from pienerf.scenes import SCENES
-from pienerf.viewer.nerf_job import NerfJob, load_nerf
+from pienerf.viewer.nerf_job import NerfJob, load_nerf, shipped_nerf
 
 __all__ = [
     "CONTROL_RANGES",
@@ -32,6 +34,9 @@ __all__ = [
     "NerfSchedules",
     "Viewer",
     "control_value",
+    "nerf_image",
+    "number_in",
+    "picked_text",
     "render_nerf_in_budget",
     "si_text",
     "vector3",
@@ -123,10 +128,7 @@ class CommandQueue:
 
 def control_value(name: str, value) -> float:
     """``value`` of the control ``name`` (:data:`CONTROL_RANGES`) as a float, or a ValueError naming the range."""
-    lo, hi = CONTROL_RANGES[name]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-        raise ValueError(f"{name.replace('_', ' ')} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
-    return float(value)
+    return number_in(value, name.replace("_", " "), *CONTROL_RANGES[name])
 
 
 def si_text(value: float, unit: str) -> str:
@@ -183,6 +185,27 @@ def render_nerf_in_budget(app: DemoApp, schedule: RefinementSchedule, cameras, l
     frame = sim.render(cameras, 0, "nerf", downscale=level)  # synchronised: the frame is ready when it returns
     schedule.record(level, time.perf_counter() - clock, 0.0 if app.paused else sim.last_report.time_step)
     return frame
+
+
+def nerf_image(app: DemoApp, schedule: RefinementSchedule, cameras, level: int, background: torch.Tensor):
+    """``(image, frame)``: the warped NeRF (:func:`render_nerf_in_budget`) over ``background`` (RGB in [0, 1]) as an
+    ``[H, W, 3]`` uint8 array, and the :class:`pienerf.render.previews.Frame` it came from (for its depth)."""
+    frame = render_nerf_in_budget(app, schedule, cameras, level)
+    alpha = frame.rgba[..., 3:]
+    rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * background.to(alpha)
+    return (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy(), frame
+
+
+def picked_text(hit) -> str:
+    """The message of a pick: the picked material point (rest space, m), or that nothing was hit."""
+    return "picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)"
+
+
+def number_in(value, what: str, lo: float, hi: float) -> float:
+    """``value`` as a float when it is a number in ``[lo, hi]`` (not a bool), else a ValueError naming ``what``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
+        raise ValueError(f"{what} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
+    return float(value)
 
 
 def vector3(value, what: str) -> np.ndarray:
@@ -244,11 +267,31 @@ class DemoApp:
         self.nerf_job: NerfJob | None = None
         self._nerf_ready: Callable[[], object] | None = None
         self._nerf_shown = 0  # fits of the current job loaded into the simulation
+        self._refinement_started = False  # the shipped NeRF's background refinement
         viewer.attach(self)
 
-    def submit(self, what: str, command: Callable[[], object], key: str | None = None, heavy: bool = False) -> None:
-        """Queue ``command`` to run in the loop thread between steps (``key`` and ``heavy`` as
-        :meth:`CommandQueue.put`, which raises ValueError when too many wait); wakes a sleeping loop."""
+    def submit(
+        self,
+        what: str,
+        command: Callable[[], object],
+        key: str | None = None,
+        heavy: bool = False,
+        report: Callable[[object], str] | None = None,
+    ) -> None:
+        """Queue ``command`` (a :class:`pienerf.session.Simulation` verb) to run in the loop thread between steps
+        (``key`` and ``heavy`` as :meth:`CommandQueue.put`, which raises ValueError when too many wait); wakes a
+        sleeping loop. ``report(result)``, when given, is the message the viewer shows once the command ran; after a
+        ``heavy`` command (which may show progress) the progress bar is hidden."""
+        if report is not None or heavy:
+            verb = command
+
+            def command() -> None:
+                result = verb()
+                if heavy and self.nerf_job is None:
+                    self.viewer.show_progress("", None)
+                if report is not None:
+                    self.viewer.report(report(result))
+
         self.commands.put(what, command, key, heavy)
         self.wake()
 
@@ -282,21 +325,30 @@ class DemoApp:
     def fit_nerf(self, then: Callable[[], object]) -> None:
         """Make the ``"nerf"`` render mode available, then call ``then`` (in the loop thread).
 
-        A given checkpoint, or one already loaded, is used at once. Otherwise the scene's NeRF is fitted (or loaded
-        from the cache) by a :class:`pienerf.viewer.nerf_job.NerfJob` while the loop goes on stepping; ``then`` runs
-        once the first (coarse) NeRF is loaded, and the refined one replaces it when ready.
+        A given checkpoint, one already loaded, or the NeRF that ships with the scene
+        (:func:`pienerf.viewer.nerf_job.shipped_nerf`, when no other fit is asked for) is used at once; after the
+        shipped one the default fit is made (or loaded from the cache) in the background and replaces it when
+        ready. Otherwise the scene's NeRF is fitted (or loaded from the cache) by a
+        :class:`pienerf.viewer.nerf_job.NerfJob` while the loop goes on stepping; ``then`` runs once the first
+        (coarse) NeRF is loaded, and the refined one replaces it when ready.
         """
-        sim = self.simulation
-        if "nerf" in sim.render_backends or self.nerf_options.get("checkpoint") is not None:
-            load_nerf(sim, **self.nerf_options)
-            then()
-            return
+        sim, options = self.simulation, self.nerf_options
         if self.nerf_job is not None:
             raise ValueError("the NeRF is already being fitted (see the progress bar); it shows when ready")
+        shipped = options.get("checkpoint") is None and shipped_nerf(sim.config.scene, options.get("fit"))
+        if "nerf" in sim.render_backends or options.get("checkpoint") is not None or shipped:
+            load_nerf(sim, **options)
+            then()
+            if shipped and options.get("fit") is None and not self._refinement_started:
+                self._refinement_started = True
+                self._start_nerf_job(NerfFit(), then)
+            return
         if sim.config.scene not in SCENES:
-            load_nerf(sim, **self.nerf_options)  # raises with the fix for a mesh scene
-        options = self.nerf_options
-        self.nerf_job = NerfJob(sim.config.scene, options.get("fit"), options.get("cache_dir"))
+            load_nerf(sim, **options)  # raises with the fix for a mesh scene
+        self._start_nerf_job(options.get("fit"), then)
+
+    def _start_nerf_job(self, fit, then: Callable[[], object]) -> None:
+        self.nerf_job = NerfJob(self.simulation.config.scene, fit, self.nerf_options.get("cache_dir"))
         self._nerf_ready, self._nerf_shown = then, 0
         self.viewer.show_progress("NeRF: starting the fit", 0.0)
         self.viewer.report("fitting the NeRF in the background; the simulation goes on")
@@ -311,7 +363,7 @@ class DemoApp:
         if job.ready > self._nerf_shown:  # a fit is in the cache: show it (the first), or put it in its place
             index, self._nerf_shown = job.ready - 1, job.ready
             options = {**self.nerf_options, "fit": job.fits[index]}
-            if index == 0:
+            if "nerf" not in self.simulation.render_backends:
                 self._run("NeRF load", lambda: (load_nerf(self.simulation, **options), self._nerf_ready()))
             else:
                 self._run("NeRF refinement", lambda: load_nerf(self.simulation, replace=True, **options))
@@ -342,8 +394,7 @@ class DemoApp:
         if self.simulation.dragging:
             self.simulation.drag_to(origin, direction)
         else:
-            hit = self.simulation.pick(origin, direction)
-            self.viewer.report("picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3)}")
+            self.viewer.report(picked_text(self.simulation.pick(origin, direction)))
 
     def tick(self) -> None:
         """One frame: commands, the progress of a background fit, one step unless paused, display."""

@@ -46,7 +46,9 @@ from pienerf.viewer.loop import (
     RENDER_MODES,
     NerfSchedules,
     control_value,
-    render_nerf_in_budget,
+    nerf_image,
+    number_in,
+    picked_text,
     si_text,
     vector3,
 )
@@ -64,12 +66,6 @@ _TARGET = Path((*_ROOT, "drag_target"))
 _CONTROLS = tuple(name for name in CONTROL_RANGES if name != "kernel_count")
 _BUTTONS = ("release", "pin", "push", "cut", "reset")
 _TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
-
-
-def _number(value, what: str, lo: float, hi: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-        raise ValueError(f"{what} must be a number in [{lo:g}, {hi:g}], got {str(value)[:80]}")
-    return float(value)
 
 
 def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
@@ -90,8 +86,8 @@ def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
         raise ValueError("camera matrix must be a finite rigid transform (last row 0 0 0 1)")
     if not np.allclose(c2w[:3, :3].T @ c2w[:3, :3], np.eye(3), atol=1e-3):
         raise ValueError("camera matrix must have an orthonormal rotation (no scale)")
-    fov = _number(fov, "camera fov (deg)", 1.0, 179.0)
-    aspect = _number(aspect, "camera aspect", 0.05, 20.0)
+    fov = number_in(fov, "camera fov (deg)", 1.0, 179.0)
+    aspect = number_in(aspect, "camera aspect", 0.05, 20.0)
     return pinhole_camera(c2w, math.radians(fov), aspect, max(1, int(height)))
 
 
@@ -131,6 +127,7 @@ class MeshcatViewer:
         self._lock = threading.Lock()
         self._particle_count = -1
         self._target_shown = False
+        self._body = None  # (model, particle count) last shown
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
         self.message = ""  # the last one shown
@@ -240,26 +237,35 @@ class MeshcatViewer:
             origin = vector3(message.get("origin"), "ray origin")
             direction = vector3(message.get("direction"), "ray direction")
             self._dragger = client
-            app.submit("pick", lambda: self._pick(origin, direction))
+            app.submit("pick", lambda: sim.pick(origin, direction), report=picked_text)
         elif kind == "drag":
             origin = vector3(message.get("origin"), "ray origin")
             direction = vector3(message.get("direction"), "ray direction")
-            app.submit("drag", lambda: self._drag(origin, direction), key="drag")
+            # a drag ray after a press that picked nothing moves nothing
+            app.submit("drag", lambda: sim.dragging and sim.drag_to(origin, direction), key="drag")
         elif kind == "set":
             self._checked(self._set, message.get("name"), message.get("value"))
         elif kind == "resample":
             count = int(self._checked(control_value, "kernel_count", message.get("kernel_count")))
-            app.submit("resample", lambda: self._resample(count), key="resample", heavy=True)
+            resampled = f"resampled with {count} kernels"
+            app.submit(
+                "resample",
+                lambda: sim.resample(count, self._progress("resampling")),
+                key="resample",
+                heavy=True,
+                report=lambda _: resampled,
+            )
         elif kind == "release":
             app.submit("release", sim.release)
         elif kind == "pin":
-            app.submit("pin", self._pin)
+            app.submit("pin", sim.pin_picked, report=lambda _: "pinned the picked region")
         elif kind == "push":
-            app.submit("push", self._push)
+            app.submit("push", sim.push_picked, report=lambda _: "constant force on the picked point")
         elif kind == "cut":
-            app.submit("cut", self._cut, heavy=True)
+            cut = lambda: sim.cut_picked((0.0, 1.0, 0.0), self._progress("cutting"))  # noqa: E731
+            app.submit("cut", cut, heavy=True, report=lambda plane: f"cut through {np.round(plane.point, 3).tolist()}")
         else:
-            app.submit("reset", self._reset, key="reset")
+            app.submit("reset", sim.reset, key="reset", report=lambda _: "reset to rest")
 
     def _checked(self, translate, *args):
         """``translate(*args)``; a ValueError is shown in the page (the controls go back to the values in use) and
@@ -306,50 +312,12 @@ class MeshcatViewer:
 
     # -- commands (the simulation loop's thread) ------------------------------------------------
 
-    def _pick(self, origin, direction) -> None:
-        hit = self.app.simulation.pick(origin, direction)
-        self.report("picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)")
-
-    def _drag(self, origin, direction) -> None:
-        if self.app.simulation.dragging:
-            self.app.simulation.drag_to(origin, direction)
-
-    def _pin(self) -> None:
-        self.app.simulation.pin_picked()
-        self.report("pinned the picked region")
-
-    def _push(self) -> None:
-        self.app.simulation.push_picked()
-        self.report("constant force on the picked point")
-
-    def _cut(self) -> None:
-        sim = self.app.simulation
-        plane = sim.cut_picked((0.0, 1.0, 0.0), self._progress("cutting"))
-        self._after_rebuild(sim)
-        self.report(f"cut through {np.round(plane.point, 3).tolist()}")
-
-    def _reset(self) -> None:
-        self.app.simulation.reset()
-        self.report("reset to rest")
-
     def _set_material(self, **changes) -> None:
         material = self.app.simulation.set_material(**changes)
         self._send_controls()
         name, value = next(iter(changes.items()))
         shown = {"young_modulus": lambda v: si_text(v, "Pa"), "gravity": lambda v: f"{-v[1]:.3g} m/s²"}
         self.report(f"{name.replace('_', ' ')} = {shown.get(name, str)(value)} ({material.model})")
-
-    def _resample(self, kernel_count: int) -> None:
-        sim = self.app.simulation
-        sim.resample(kernel_count, self._progress("resampling"))
-        self._after_rebuild(sim)
-        self.report(f"resampled with {sim.model.basis.kernel_count} kernels")
-
-    def _after_rebuild(self, sim) -> None:
-        self.show_progress("", None)
-        if sim.particle_positions().shape[0] != self._particle_count:
-            self._send_particles(sim)
-        self._send_controls()
 
     def _progress(self, what: str):
         return lambda stage, fraction: self.show_progress(f"{what}: {stage}", fraction)
@@ -372,6 +340,12 @@ class MeshcatViewer:
     def update(self, app) -> None:
         """Send this frame: vertex buffers of what is shown, the drag marker, the status; NeRF images."""
         sim, send = app.simulation, self.server.send
+        body = (id(sim.model), sim.model.basis.kernel_count, sim.particle_positions().shape[0])
+        if body != self._body:  # a re-sampling or a cut rebuilt it: new particles, a new kernel count
+            self._body = body
+            if body[2] != self._particle_count:
+                self._send_particles(sim)
+            self._send_controls()
         if app.render_mode == "mesh":
             send(
                 _vertices_command(_BODY, sim.deformed_mesh_vertices().numpy()),
@@ -418,10 +392,7 @@ class MeshcatViewer:
             level = schedule.next(sim.state.q, view)
             if level is None:
                 continue
-            frame = render_nerf_in_budget(app, schedule, page_cameras(*view, self.nerf_height), level)
-            alpha = frame.rgba[..., 3:]
-            rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
-            image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()
+            image, _ = nerf_image(app, schedule, page_cameras(*view, self.nerf_height), level, self.background)
             buffer = io.BytesIO()
             Image.fromarray(image).save(buffer, format="JPEG", quality=85)
             data = "data:image/jpeg;base64," + base64.b64encode(buffer.getvalue()).decode("ascii")

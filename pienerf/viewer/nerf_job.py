@@ -5,6 +5,12 @@ one (:data:`FIRST_FIT`, a small hash grid on the same rendered views) shown as s
 one (:class:`pienerf.nerf.fitting.NerfFit`'s defaults), which replaces it. The process runs at a lower priority on
 one torch thread so that the simulation keeps its frame rate on a machine of few cores (figures in
 ``docs/benchmarks.md``). Both are cached by :func:`pienerf.scenes.scene_nerf`, so a later start loads them.
+
+The plant's coarse NeRF also ships with the project (:data:`SHIPPED_NERFS`, ``assets/nerf/``): the scene is the
+project's own, so :func:`load_nerf` shows it at once when the settings asked for are :data:`FIRST_FIT` (they are
+part of the file's name) and falls back to the cache or a fit otherwise. It is fitted by the project's own code and
+stored with float16 weights and no optimizer state; regenerate it after a change to the plant, to
+:data:`FIRST_FIT` or to the fitting recipe with ``python -m apps.demo --build-nerf-asset`` (:func:`build_nerf_asset`).
 """
 
 from __future__ import annotations
@@ -12,6 +18,8 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import tempfile
+from pathlib import Path
 
 import torch
 
@@ -19,12 +27,22 @@ from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf.field import NGPConfig
 from pienerf.nerf.fitting import NerfFit
-from pienerf.nerf.training import TrainConfig, load_checkpoint
+from pienerf.nerf.training import TrainConfig, load_checkpoint, save_checkpoint
 from pienerf.render.previews import RenderBackend
 from pienerf.scenes import SCENES, scene_nerf
 from pienerf.session import Simulation
 
-__all__ = ["FIRST_FIT", "NerfJob", "load_nerf", "smoke_fit"]
+__all__ = [
+    "ASSET_DIR",
+    "FIRST_FIT",
+    "SHIPPED_NERFS",
+    "NerfJob",
+    "build_nerf_asset",
+    "load_nerf",
+    "shipped_nerf",
+    "shipped_nerf_path",
+    "smoke_fit",
+]
 
 FIRST_FIT = NerfFit(
     ngp=NGPConfig(
@@ -39,6 +57,12 @@ FIRST_FIT = NerfFit(
 )
 """The coarse NeRF shown first: the default fit's views (48 of 64²) on an 8-level hash grid of 2¹⁴ entries, 32-wide
 layers and 1024 rays a step for 300 steps, about a tenth of the default fit's work per step."""
+
+ASSET_DIR = Path(__file__).resolve().parents[2] / "assets" / "nerf"
+"""Where the NeRFs that ship with the project lie."""
+
+SHIPPED_NERFS = ("plant",)
+"""Embedded scenes whose :data:`FIRST_FIT` NeRF ships in :data:`ASSET_DIR`."""
 
 _NICENESS = 5  # the fitting process yields the cores to the simulation loop
 
@@ -56,6 +80,50 @@ def smoke_fit() -> NerfFit:
     return NerfFit(ngp=ngp, train=TrainConfig(steps=60, batch_rays=512, grid_warmup_steps=16), views=16, resolution=32)
 
 
+def shipped_nerf_path(scene: str, fit=None, asset_dir: str | Path | None = None) -> Path:
+    """Where the shipped NeRF of ``scene`` fitted with ``fit`` (default :data:`FIRST_FIT`) lies (or would lie):
+    ``<asset_dir>/<scene>-<digest>.pt``, the digest of :meth:`pienerf.nerf.fitting.NerfFit.digest`, so a file
+    fitted with other settings is never taken for this one."""
+    fit = FIRST_FIT if fit is None else fit
+    return Path(ASSET_DIR if asset_dir is None else asset_dir) / f"{scene}-{fit.digest(scene=scene)}.pt"
+
+
+def build_nerf_asset(scene: str = "plant", asset_dir: str | Path | None = None, progress=None) -> Path:
+    """Fit ``scene``'s NeRF with :data:`FIRST_FIT` (:func:`pienerf.scenes.scene_nerf`, in a scratch cache so the
+    views and the fit are made afresh) and write it compactly to :func:`shipped_nerf_path`: float16 weights and
+    occupancy densities, no optimizer state; :func:`pienerf.nerf.training.load_checkpoint` reads it (as float32).
+    Returns the path written; other NeRFs of ``scene`` in ``asset_dir`` (older settings) are removed."""
+    if scene not in SCENES:
+        raise ValueError(f"no NeRF can be fitted to {scene!r}: embedded scenes are {', '.join(SCENES)}")
+    path = shipped_nerf_path(scene, asset_dir=asset_dir)
+    with tempfile.TemporaryDirectory() as scratch:
+        trained = scene_nerf(scene, FIRST_FIT, scratch, progress)
+        save_checkpoint(Path(scratch) / "full.pt", trained.field, trained.grid, trained.step)
+        payload = torch.load(Path(scratch) / "full.pt", map_location="cpu", weights_only=True)
+    # Weights and densities to float16 (the scene box and any integer buffer stay as they are).
+    payload["field"] = {name: _half(name, value) for name, value in payload["field"].items()}
+    payload["grid"]["density"] = payload["grid"]["density"].half()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_suffix(".partial")
+    torch.save(payload, partial)
+    partial.replace(path)
+    for old in path.parent.glob(f"{scene}-*.pt"):
+        if old != path:
+            old.unlink()
+    return path
+
+
+def _half(name: str, value: torch.Tensor) -> torch.Tensor:
+    """``value`` in float16 when it is a float32 weight (not the scene box)."""
+    return value.half() if value.dtype == torch.float32 and "aabb" not in name else value
+
+
+def shipped_nerf(scene: str, fit=None) -> bool:
+    """Whether a NeRF of ``scene`` ships with the project for ``fit`` (``None``, the viewer's default, or
+    :data:`FIRST_FIT`): :func:`load_nerf` then loads it instead of fitting."""
+    return (fit is None or fit == FIRST_FIT) and shipped_nerf_path(scene).is_file()
+
+
 def load_nerf(
     simulation: Simulation,
     checkpoint: str | None = None,
@@ -64,13 +132,16 @@ def load_nerf(
     progress=None,
     replace: bool = False,
 ) -> RenderBackend:
-    """Give ``simulation`` its ``"nerf"`` render mode: a given checkpoint, else the NeRF of its embedded scene
-    (trained on the scene's rendered views, or loaded from the cache); returns the render backend. One already
+    """Give ``simulation`` its ``"nerf"`` render mode: a given checkpoint, else the NeRF that ships with its scene
+    when ``fit`` asks for no other (:func:`shipped_nerf`), else the NeRF of its embedded scene (trained on the
+    scene's rendered views, or loaded from the cache); returns the render backend. One already
     there is kept unless ``replace`` (a refined NeRF taking the coarse one's place)."""
     if "nerf" in simulation.render_backends and not replace:
         return simulation.render_backends["nerf"]
     if checkpoint is not None:
         trained = load_checkpoint(checkpoint)
+    elif shipped_nerf(simulation.config.scene, fit):
+        trained = load_checkpoint(shipped_nerf_path(simulation.config.scene))
     elif simulation.config.scene in SCENES:
         trained = scene_nerf(simulation.config.scene, fit or NerfFit(), cache_dir, progress)
     else:

@@ -38,7 +38,7 @@ from pienerf.viewer.loop import (
     DemoApp,
     NerfSchedules,
     control_value,
-    render_nerf_in_budget,
+    nerf_image,
     si_text,
     vector3,
 )
@@ -200,9 +200,9 @@ class ViserViewer:
         for handle in self._material_handles:
             handle.on_update(self._refusing(handle, self._material_changed))
         self.resample.on_click(self._refusing(None, self._resample_clicked))
-        self.release.on_click(lambda _e: app.submit("release", self._release))
+        self.release.on_click(lambda _e: app.submit("release", sim.release))
         self.pin.on_click(lambda _e: app.submit("pin", sim.pin_picked))
-        self.push.on_click(lambda _e: app.submit("force", self._push))
+        self.push.on_click(lambda _e: app.submit("force", sim.push_picked))
         self.cut.on_click(lambda _e: app.submit("cut", lambda: sim.cut_picked((0.0, 1.0, 0.0)), heavy=True))
         self.reset.on_click(lambda _e: app.submit("reset", sim.reset, key="reset"))
         self.show_mesh.on_update(lambda _e: setattr(self.mesh, "visible", self.show_mesh.value))
@@ -254,15 +254,18 @@ class ViserViewer:
             damping=control_value("damping", self.damping.value),
             gravity=(0.0, -control_value("gravity", self.gravity.value), 0.0),
         )
-        self.app.submit("material change", lambda: self._set_material(values), key="material change")
-
-    def _set_material(self, values: dict) -> None:
-        material = self.app.simulation.set_material(**values)
-        self.report(f"E = {si_text(material.young_modulus, 'Pa')}, ν = {material.poisson_ratio:.3g} ({material.model})")
+        self.app.submit(
+            "material change",
+            lambda: self.app.simulation.set_material(**values),
+            key="material change",
+            report=lambda m: f"E = {si_text(m.young_modulus, 'Pa')}, ν = {m.poisson_ratio:.3g} ({m.model})",
+        )
 
     def _resample_clicked(self, _value) -> None:
         count = int(control_value("kernel_count", self.kernels.value))
-        self.app.submit("resample", lambda: self._resample(count), key="resample", heavy=True)
+        sim = self.app.simulation
+        progress = lambda stage, fraction: self.show_progress(f"resampling: {stage}", fraction)  # noqa: E731
+        self.app.submit("resample", lambda: sim.resample(count, progress), key="resample", heavy=True)
 
     def _render_mode_chosen(self, mode) -> None:
         if mode not in RENDER_MODES:
@@ -291,7 +294,7 @@ class ViserViewer:
                 target = vector3(event.end_position, "drag position")
                 self.app.submit("drag", lambda: self.app.simulation.drag_to(target=target), key="drag")
             else:
-                self.app.submit("drag end", self._release)
+                self.app.submit("drag end", self.app.simulation.release)
         except ValueError as error:
             self.report(f"ignored a malformed drag: {error}")
 
@@ -351,29 +354,12 @@ class ViserViewer:
             if level is None:
                 continue
             cameras = viser_cameras(camera.position, camera.wxyz, camera.fov, camera.aspect, self.nerf_height)
-            frame = render_nerf_in_budget(app, schedule, cameras, level)
-            alpha = frame.rgba[..., 3:]
-            rgb = frame.rgba[..., :3] * alpha + (1.0 - alpha) * self.background.to(alpha)
+            image, frame = nerf_image(app, schedule, cameras, level, self.background)
             z = cameras.axial_depth(0, frame.depth.cpu())  # viser composites by depth along the optical axis
             z = torch.where(torch.isfinite(z), z, 100.0)
-            image = (rgb.clamp(0, 1) * 255).round().byte().cpu().numpy()
             client.scene.set_background_image(image, format="jpeg", depth=z.numpy())
             self.nerf_renders.append(level)
             self.last_nerf_image = image
-
-    def _resample(self, kernel_count: int) -> None:
-        sim = self.app.simulation
-        sim.resample(kernel_count, lambda stage, fraction: self.show_progress(f"resampling: {stage}", fraction))
-        self.show_progress("", None)
-        self._remove_gizmo()
-
-    def _release(self) -> None:
-        self.app.simulation.release()
-        self._remove_gizmo()
-
-    def _push(self) -> None:
-        self.app.simulation.push_picked()
-        self._remove_gizmo()
 
     def _remove_gizmo(self) -> None:
         if self._gizmo is not None:

@@ -13,6 +13,7 @@ from pienerf.sim.model import DiscretizationConfig, QGMLSModel
 from pienerf.sim.picking import (
     DragController,
     Interaction,
+    PickSurface,
     clamp_target,
     inverse_effective_mass,
     ray_particle_pick,
@@ -122,6 +123,30 @@ def test_pick_update_release_and_the_drag_spring(device):
     assert drag.pick(origin, torch.tensor([0.0, 1.0, 0.0]), q) is None  # a miss picks nothing
     with pytest.raises(RuntimeError, match="nothing is picked"):
         drag.update(target=(0.0, 0.0, 0.0))
+
+
+def test_the_pick_surface_is_the_models_own_and_follows_q(device):
+    """A pick surface built from the body's mesh alone (no renderer) is moved by q: a ray through the translated
+    face hits the material point it carried there, and a ray where the face was at rest misses it."""
+    model = _model()
+    lo, hi = model.position.amin(0).cpu(), model.position.amax(0).cpu()
+    z = float(hi[2])
+    vertices = torch.tensor(
+        [[lo[0], lo[1], z], [hi[0], lo[1], z], [hi[0], hi[1], z], [lo[0], hi[1], z]], dtype=torch.float64
+    )
+    surface = PickSurface(model, vertices, torch.tensor([[0, 1, 2], [0, 2, 3]]))
+    drag = DragController(model, surface=surface)
+    shift = torch.tensor([0.0, 0.3, 0.02], dtype=torch.float64)
+    q = model.translation(shift)
+    rest = torch.tensor([0.5 * float(lo[0] + hi[0]), 0.5 * float(lo[1] + hi[1]), z], dtype=torch.float64)
+    hit = drag.pick(rest + shift + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), (0.0, 0.0, -1.0), q)
+    # float32 vertices and BVH: a few ulps of the 0.5 m coordinates
+    assert hit is not None and hit.particle == -1
+    assert torch.allclose(hit.rest, rest, atol=1e-5) and torch.allclose(hit.world, rest + shift, atol=1e-5)
+    # At rest place the face is gone (0.3 m up, more than the bar's height): nothing is hit, not even a particle.
+    assert drag.pick(rest + torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64), (0.0, 0.0, -1.0), q) is None
+    with pytest.raises(ValueError, match="vertices \\[V, 3\\] and faces"):
+        PickSurface(model, vertices[:, :2], torch.tensor([[0, 1, 2]]))
 
 
 def test_drag_pulls_the_body_toward_the_target(device):

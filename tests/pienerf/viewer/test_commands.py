@@ -7,13 +7,18 @@ import threading
 from dataclasses import replace
 
 import pytest
+import torch
 
 from kernels import backend
+from pienerf.nerf.fitting import NerfFit
+from pienerf.nerf.training import load_checkpoint
 from pienerf.viewer import build_app, loop
 from pienerf.viewer.loop import MAX_PENDING_COMMANDS, REST_FRAMES, CommandQueue
 from pienerf.viewer.meshcat_viewer import MeshcatViewer
+from pienerf.viewer.nerf_job import FIRST_FIT, shipped_nerf, shipped_nerf_path
 
 CLIENT = 1
+_Z = torch.tensor([0.0, 0.0, 2.0], dtype=torch.float64)  # a drag ray starts this far in front of its point
 
 
 @pytest.fixture(scope="module")
@@ -149,3 +154,77 @@ def test_the_first_nerf_shows_and_the_refined_one_takes_its_place(tmp_path, monk
         assert app.errors == []
     finally:
         app.close()
+
+
+def _plant_nerf_app(fit):
+    """The smoke plant behind a meshcat viewer whose one tab (no socket) looks at it, asking for ``fit``'s NeRF."""
+    app = build_app("plant", "meshcat", "127.0.0.1", 0, smoke=True)
+    app.nerf_options["fit"] = fit
+    centre = app.simulation.centre.double().tolist()
+    matrix = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, centre[0], centre[1] + 0.2, centre[2] + 1.5, 1]
+    app.viewer.on_message(CLIENT, {"type": "camera", "matrix": matrix, "fov": 60, "aspect": 1.5})
+    return app
+
+
+def test_the_shipped_nerf_shows_at_once_and_the_loop_keeps_stepping_and_serving(monkeypatch):
+    """Choosing the NeRF view loads the shipped NeRF in the same frame; then, while a drag keeps the plant moving,
+    every frame steps and renders one image (coarse), and once still the loop renders the refined image once and
+    then nothing: it neither stops stepping nor re-renders forever."""
+    monkeypatch.setattr(loop, "NerfJob", None)  # no fitting process may start
+    app = _plant_nerf_app(FIRST_FIT)
+    try:
+        sim, viewer = app.simulation, app.viewer
+        viewer.on_message(CLIENT, {"type": "set", "name": "render_mode", "value": "nerf"})
+        app.tick()
+        assert app.render_mode == "nerf" and app.nerf_job is None and app.errors == []
+        assert len(viewer.nerf_renders) == 1 and viewer.last_nerf_image is not None
+        top = sim.model.position[int(sim.model.position[:, 1].argmax())].double().cpu()
+        sim.grab(top)
+        for frame in range(8):
+            side = torch.tensor([0.08 if frame % 2 else -0.08, 0.0, 0.0], dtype=torch.float64)
+            viewer.on_message(CLIENT, {"type": "drag", "origin": (top + side + _Z).tolist(), "direction": [0, 0, -1]})
+            before, renders = sim.time, len(viewer.nerf_renders)
+            app.tick()
+            assert sim.time > before, f"frame {frame} did not step"
+            assert len(viewer.nerf_renders) == renders + 1, f"frame {frame} served no NeRF image"
+        assert max(viewer.nerf_renders[1:]) > 1  # coarse while moving
+        app.paused = True  # the body stands still: one refined image, then none
+        renders = len(viewer.nerf_renders)
+        for _ in range(4):
+            app.tick()
+        assert viewer.nerf_renders[renders:] == [1] and app.errors == []
+    finally:
+        app.close()
+
+
+def test_the_default_fit_refines_the_shipped_nerf_in_the_background(monkeypatch):
+    monkeypatch.setattr(loop, "NerfJob", _TwoFits)
+    app = _plant_nerf_app(None)
+    try:
+        app.viewer.on_message(CLIENT, {"type": "set", "name": "render_mode", "value": "nerf"})
+        app.tick()  # the shipped NeRF at once; the job (default fit) starts
+        shipped = app.simulation.render_backends["nerf"]
+        assert app.render_mode == "nerf" and isinstance(app.nerf_job, _TwoFits)
+        assert app.nerf_job.fits[0] == NerfFit()
+        for _ in range(3):
+            app.tick()
+        assert app.nerf_job is None and app.render_mode == "nerf" and app.errors == []
+        assert app.simulation.render_backends["nerf"] is not shipped, "the default fit did not replace the shipped NeRF"
+    finally:
+        app.close()
+
+
+def test_the_shipped_nerf_is_compact_loads_and_matches_the_first_fit(device):
+    """The plant's shipped NeRF is named by the viewer's first fit (a changed fit or recipe must regenerate it:
+    ``python -m apps.demo --build-nerf-asset``), stores float16 weights in under 2 MB, and the checkpoint loader
+    reads it as float32 with the first fit's architecture."""
+    path = shipped_nerf_path("plant")
+    assert path.is_file(), "the plant's NeRF asset is missing or stale: run python -m apps.demo --build-nerf-asset"
+    assert path.stat().st_size < 2 * 2**20
+    stored = torch.load(path, map_location="cpu", weights_only=True)
+    assert stored["field"]["encoding.table"].dtype == torch.float16 and stored["optimizer"] is None
+    trained = load_checkpoint(path)
+    assert trained.field.config == FIRST_FIT.ngp
+    assert all(p.dtype == torch.float32 for p in trained.field.parameters())
+    assert shipped_nerf("plant") and shipped_nerf("plant", FIRST_FIT) and not shipped_nerf("plant", NerfFit())
+    assert not shipped_nerf("teapot")
