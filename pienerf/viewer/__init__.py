@@ -14,12 +14,110 @@
 
 from __future__ import annotations
 
-from pienerf.session import Simulation, SimulationConfig
-from pienerf.viewer.loop import RENDER_MODES, DemoApp
-from pienerf.viewer.nerf_job import load_nerf, smoke_fit
-from pienerf.viewer.origin import check_address
+import importlib
 
-__all__ = ["RENDER_MODES", "SMOKE", "VIEWERS", "DemoApp", "build_app"]
+from pienerf.session import Simulation, SimulationConfig
+from pienerf.viewer.loop import (
+    CONTROL_RANGES,
+    MAX_PENDING_COMMANDS,
+    RENDER_MODES,
+    REST_FRAMES,
+    REST_SPEED,
+    CommandQueue,
+    DemoApp,
+    NerfSchedules,
+    Viewer,
+    control_value,
+    nerf_image,
+    number_in,
+    picked_text,
+    render_nerf_in_budget,
+    si_text,
+    vector3,
+)
+from pienerf.viewer.nerf_job import (
+    ASSET_DIR,
+    FIRST_FIT,
+    SHIPPED_NERFS,
+    NerfJob,
+    build_nerf_asset,
+    load_nerf,
+    shipped_nerf,
+    shipped_nerf_path,
+    smoke_fit,
+)
+from pienerf.viewer.origin import (
+    LOOPBACK,
+    VISER_VERSIONS,
+    RequestCheck,
+    allowed_hosts,
+    bind_socket,
+    check_address,
+    checked_viser_server,
+)
+
+_FRONT_END_NAMES = {
+    "MAX_MESSAGE_BYTES": "meshcat_server",
+    "MeshcatServer": "meshcat_server",
+    "Y_UP_TO_Z_UP": "meshcat_viewer",
+    "MeshcatViewer": "meshcat_viewer",
+    "page_cameras": "meshcat_viewer",
+    "ViserViewer": "viser_viewer",
+}
+"""The front ends' names, imported on first use (:func:`__getattr__`): meshcat brings tornado and IPython, viser its
+own server; a program that uses neither does not load them."""
+
+__all__ = [
+    "ASSET_DIR",
+    "CONTROL_RANGES",
+    "FIRST_FIT",
+    "LOOPBACK",
+    "MAX_MESSAGE_BYTES",
+    "MAX_PENDING_COMMANDS",
+    "RENDER_MODES",
+    "REST_FRAMES",
+    "REST_SPEED",
+    "SHIPPED_NERFS",
+    "SMOKE",
+    "VIEWERS",
+    "VISER_VERSIONS",
+    "Y_UP_TO_Z_UP",
+    "CommandQueue",
+    "DemoApp",
+    "MeshcatServer",
+    "MeshcatViewer",
+    "NerfJob",
+    "NerfSchedules",
+    "RequestCheck",
+    "Viewer",
+    "ViserViewer",
+    "allowed_hosts",
+    "bind_socket",
+    "build_app",
+    "build_nerf_asset",
+    "check_address",
+    "checked_viser_server",
+    "control_value",
+    "load_nerf",
+    "nerf_image",
+    "number_in",
+    "page_cameras",
+    "picked_text",
+    "render_nerf_in_budget",
+    "shipped_nerf",
+    "shipped_nerf_path",
+    "si_text",
+    "smoke_fit",
+    "vector3",
+]
+
+
+def __getattr__(name: str):
+    """A front end's public name, importing its module on first use (PEP 562)."""
+    module = _FRONT_END_NAMES.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{module}"), name)
 
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
 """Settings of a smoke run: a body of a few kernels that builds in seconds."""
@@ -50,16 +148,9 @@ def build_app(
         raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
-    # The viewer first: a port in use is reported before the simulation is built. The front ends are imported here,
-    # deferred: meshcat with tornado, or viser, load only when their front end is built.
-    if viewer_name == "viser":
-        from pienerf.viewer.viser_viewer import ViserViewer
-
-        viewer = ViserViewer(host, port)
-    else:
-        from pienerf.viewer.meshcat_viewer import MeshcatViewer
-
-        viewer = MeshcatViewer(host, port)
+    # The viewer first: a port in use is reported before the simulation is built. The front end's module loads
+    # here (meshcat with tornado, or viser), only when that front end is built.
+    viewer = __getattr__("ViserViewer" if viewer_name == "viser" else "MeshcatViewer")(host, port)
     try:
         simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
         nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
