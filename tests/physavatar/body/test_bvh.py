@@ -174,13 +174,13 @@ def test_a_joint_named_differently_is_named_and_mapped(skeleton, clip_lines, tmp
     assert torch.equal(mapped.root_translation, plain.root_translation)
 
 
-def test_the_command_line_maps_joints_and_names_a_bad_pair(clip_lines, tmp_path, capsys):
+def test_the_command_line_maps_joints_and_names_a_bad_pair(device, clip_lines, tmp_path, capsys):
     path = _write(tmp_path, _renamed(clip_lines, "left_knee", "LeftLeg_2"))
     out = tmp_path / "out"
-    assert avatar.main(["simulate", "--motion", str(path), "--smoke", "--device", "cpu", "--out", str(out)]) == 2
+    assert avatar.main(["simulate", "--motion", str(path), "--smoke", "--device", device, "--out", str(out)]) == 2
     assert "--joint-map ours=theirs" in capsys.readouterr().err
     for bad, says in (("left_knee", "ours=theirs pairs"), ("kneee=LeftLeg_2", "'kneee', which is not one of")):
-        args = ["simulate", "--motion", str(path), "--joint-map", bad, "--smoke", "--device", "cpu", "--out", str(out)]
+        args = ["simulate", "--motion", str(path), "--joint-map", bad, "--smoke", "--device", device, "--out", str(out)]
         assert avatar.main(args) == 2
         assert says in capsys.readouterr().err
     assert not out.exists()

@@ -125,7 +125,7 @@ def test_bvh_with_mixamo_names_in_inches_is_retargeted(skeleton, tmp_path):
 def test_bvh_missing_required_joint_is_named(skeleton, tmp_path):
     _, text = _mixamo_file(skeleton, tmp_path)
     (tmp_path / "bad.bvh").write_text(text.replace("mixamorig:LeftForeArm", "mixamorig:LeftLowerArm"))
-    with pytest.raises(ValueError, match=r"no BVH joint for left_elbow \(as 'LeftForeArm'\).*name_map="):
+    with pytest.raises(ValueError, match=r"no BVH joint for left_elbow \(as 'LeftForeArm'\).*name_map"):
         load_bvh(tmp_path / "bad.bvh", skeleton)
 
 
