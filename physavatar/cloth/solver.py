@@ -239,7 +239,7 @@ class SolverCloth:
         with backend.one_torch_thread_on_cpu():
             return self._step(state_in, state_out, control, dt)
 
-    def _context(self, state_in: ClothState, control: ClothControl, dt: float, state_out: ClothState | None = None):
+    def step_context(self, state_in: ClothState, control: ClothControl, dt: float, state_out: ClothState | None = None):
         """Checked inputs of a step: ``(X [V + B, 3] at its start, target [V + B, 3], context)`` (no friction yet).
 
         Everything it returns lives in the solver's step buffers (:meth:`_buffers`), filled in place: valid until the
@@ -283,7 +283,7 @@ class SolverCloth:
 
     def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> ClothStepReport:
         cfg = self.config
-        X, target, ctx = self._context(state_in, control, dt, state_out)
+        X, target, ctx = self.step_context(state_in, control, dt, state_out)
         v, kinematic = self.vertex_count, ctx.kinematic
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
         buf = self._step_buffers
@@ -439,7 +439,7 @@ class SolverCloth:
                 f"parameters {parameters} must be distinct names from {SENSITIVITY_PARAMETERS}, at least one"
             )
         count = len(parameters)
-        X_start, X, ctx = self._context(state_in, control, dt)  # X: the targets, body at the end of the step
+        X_start, X, ctx = self.step_context(state_in, control, dt)  # X: the targets, body at the end of the step
         # NewtonMatrices takes a dof tensor other than the last step's for the start of a new step (its pending blocks
         # join the pattern): the step's dof buffer would be that same tensor, so the solve here gets its own copy
         ctx = ctx._replace(dof=ctx.dof.clone())
@@ -462,7 +462,7 @@ class SolverCloth:
         parts: dict[str, torch.Tensor] = {}
         near = self.contact.near(X, pairs)
         _, grad, elements = self.potential.evaluate(X, near, ctx, project=not exact_hessian, parts=parts)
-        matrix, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
+        matrix, _ = self.assemble(elements, grad, torch.zeros_like(X), ctx)
 
         rhs = X.new_zeros(v + nb, 3, count)
         if dynamic:
@@ -504,7 +504,7 @@ class SolverCloth:
         """
         with backend.one_torch_thread_on_cpu():
             v = self.vertex_count
-            X_start, X, ctx = self._context(state_in, control, dt)
+            X_start, X, ctx = self.step_context(state_in, control, dt)
             ctx = ctx._replace(dof=ctx.dof.clone(), free=ctx.free.clone())  # the step's buffers are reused
             if tuple(state_out.x.shape) != (v, 3):
                 raise ValueError(f"state_out.x must have shape [{v}, 3], got {list(state_out.x.shape)}")
@@ -524,7 +524,7 @@ class SolverCloth:
             _, grad, elements = self.potential.evaluate(
                 X, self.contact.near(X, pairs), ctx, project=not exact_hessian, parts=parts
             )
-            matrix, _ = self._assemble(elements, grad, torch.zeros_like(X), ctx)
+            matrix, _ = self.assemble(elements, grad, torch.zeros_like(X), ctx)
             return StepLinearisation(matrix, ctx.free, X, parts, ctx.friction, friction_hessian)
 
     def set_stiffness_fields(self, membrane: torch.Tensor | None = None, bending: torch.Tensor | None = None) -> None:
@@ -632,7 +632,7 @@ class SolverCloth:
                 + " at the start of the step; start from an intersection-free state"
             )
 
-    def _assemble(self, elements: list[NewtonElement], grad: torch.Tensor, p_kin: torch.Tensor, ctx: StepContext):
+    def assemble(self, elements: list[NewtonElement], grad: torch.Tensor, p_kin: torch.Tensor, ctx: StepContext):
         """The Newton matrix of the free DOFs and the right-hand side ``−g_f − H_fk p_k`` (``[n, 3]``).
 
         ``p_kin`` is zero on the free vertices: the blocks that join a free vertex to a kinematic one push

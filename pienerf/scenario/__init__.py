@@ -29,6 +29,7 @@ from pienerf.scenario.runner import (
     failure_summary,
     label_tile,
     render_scenario,
+    save_png,
 )
 from pienerf.scenario.runs import (
     OFFLINE_NEWTON_ITERATIONS,
@@ -93,6 +94,7 @@ __all__ = [
     "prepare_nerf",
     "progress_log",
     "render_scenario",
+    "save_png",
     "require_video_encoder",
     "run_metrics",
     "sample_volumes",

@@ -45,7 +45,15 @@ from pienerf.scenario.schema import (
     volume_sample_frames,
 )
 
-__all__ = ["MODE_LABELS", "OWNED_FILES", "clear_earlier_render", "failure_summary", "label_tile", "render_scenario"]
+__all__ = [
+    "MODE_LABELS",
+    "OWNED_FILES",
+    "clear_earlier_render",
+    "failure_summary",
+    "label_tile",
+    "render_scenario",
+    "save_png",
+]
 
 
 def _to_uint8(image: torch.Tensor) -> np.ndarray:
@@ -140,13 +148,13 @@ def _render_tiles(
             if outputs["depth"]:
                 with atomic_path(out / "depth" / f"{stem}.npy") as temporary:
                     np.save(temporary, result.depth.cpu().numpy().astype(np.float32))
-                _save_png(_depth_preview(result.depth), out / "depth" / f"{stem}.png")
+                save_png(_depth_preview(result.depth), out / "depth" / f"{stem}.png")
             if outputs["shadow"] and result.shadow is not None:
-                _save_png(_to_uint8(result.shadow), out / "shadow" / f"{stem}.png")
+                save_png(_to_uint8(result.shadow), out / "shadow" / f"{stem}.png")
     return tiles
 
 
-def _save_png(image: np.ndarray, path: Path) -> None:
+def save_png(image: np.ndarray, path: Path) -> None:
     """One PNG, written whole or not at all."""
     with atomic_path(path) as temporary:
         Image.fromarray(image).save(temporary)
@@ -256,7 +264,7 @@ def _render_frames(scenario, runs, out, outputs, written, writer, stop: _StopBet
         image = torch.cat(tiles, dim=1)
         rgb = image[..., :3] * image[..., 3:] + (1.0 - image[..., 3:])  # over white
         if outputs["frames"]:
-            _save_png(_to_uint8(image), out / "frames" / f"frame_{frame:04d}.png")
+            save_png(_to_uint8(image), out / "frames" / f"frame_{frame:04d}.png")
         if writer is not None:
             writer.append_data(_to_uint8(rgb))
         per_frame.append(record)

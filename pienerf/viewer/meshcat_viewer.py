@@ -286,7 +286,7 @@ class MeshcatViewer:
         elif name == "render_mode":
             if value not in RENDER_MODES:
                 raise ValueError(f"unknown render mode {str(value)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
-            app.submit("render mode", lambda: self._set_render_mode(value), key="set render_mode")
+            app.submit("render mode", lambda: self.set_render_mode(value), key="set render_mode")
         elif name in _CONTROLS:
             number = control_value(name, value)
             changes = {"gravity": (0.0, -number, 0.0)} if name == "gravity" else {name: number}
@@ -322,13 +322,13 @@ class MeshcatViewer:
     def _progress(self, what: str):
         return lambda stage, fraction: self.show_progress(f"{what}: {stage}", fraction)
 
-    def _set_render_mode(self, mode: str) -> None:
+    def set_render_mode(self, mode: str) -> None:
         """Switch what the page shows; the first time, the NeRF is fitted in the background (progress in the page)
         and shown once ready, while the simulation goes on."""
         app = self.app
         if mode == "nerf" and "nerf" not in app.simulation.render_backends:
             self._send_controls()  # the menu shows the mode in use until the NeRF is ready
-            app.fit_nerf(lambda: self._set_render_mode("nerf"))
+            app.fit_nerf(lambda: self.set_render_mode("nerf"))
             return
         app.render_mode = mode
         self._show(mode)

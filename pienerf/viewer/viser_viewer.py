@@ -119,9 +119,9 @@ class ViserViewer:
         self.port = self.server.get_port()
         shown = f"[{host}]" if ":" in host else host
         self.url = f"http://{shown}:{self.port}/"
-        self._malformed = _MalformedMessageLog(self.port)
+        self.malformed_log = _MalformedMessageLog(self.port)
         for name in ("websockets.server", "asyncio"):
-            logging.getLogger(name).addFilter(self._malformed)
+            logging.getLogger(name).addFilter(self.malformed_log)
         self.app: DemoApp | None = None
         self._gizmo = None
         self._gizmo_sync = False
@@ -161,7 +161,7 @@ class ViserViewer:
         )
         self.ground = server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
         self._build_gui(app)
-        server.scene.on_click()(self._on_click)
+        server.scene.on_click()(self.on_click)
         self.mesh.on_drag("left")(self._on_drag)
         server.on_client_connect(self._on_connect)
         self._show(app.render_mode)
@@ -270,11 +270,12 @@ class ViserViewer:
     def _render_mode_chosen(self, mode) -> None:
         if mode not in RENDER_MODES:
             raise ValueError(f"unknown render mode {str(mode)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
-        self.app.submit("render mode", lambda: self._set_render_mode(mode), key="render mode")
+        self.app.submit("render mode", lambda: self.set_render_mode(mode), key="render mode")
 
     # -- events ----------------------------------------------------------------------------------
 
-    def _on_click(self, event) -> None:
+    def on_click(self, event) -> None:
+        """A click in the scene (viser's event: ``ray_origin``, ``ray_direction``): pick along its ray."""
         try:
             origin, direction = vector3(event.ray_origin, "ray origin"), vector3(event.ray_direction, "ray direction")
         except ValueError as error:
@@ -311,13 +312,13 @@ class ViserViewer:
         """Whether a client is connected."""
         return bool(self.server.get_clients())
 
-    def _set_render_mode(self, mode: str) -> None:
+    def set_render_mode(self, mode: str) -> None:
         """Switch what the page shows; the first time, the NeRF is fitted in the background (progress in the
         panel) and shown once ready, while the simulation goes on."""
         app = self.app
         if mode == "nerf" and "nerf" not in app.simulation.render_backends:
             self._set_quietly(self.render_mode, app.render_mode)  # until it is ready
-            app.fit_nerf(lambda: self._set_render_mode("nerf"))
+            app.fit_nerf(lambda: self.set_render_mode("nerf"))
             return
         app.render_mode = mode
         self._set_quietly(self.render_mode, mode)
@@ -420,4 +421,4 @@ class ViserViewer:
     def close(self) -> None:
         self.server.stop()
         for name in ("websockets.server", "asyncio"):
-            logging.getLogger(name).removeFilter(self._malformed)
+            logging.getLogger(name).removeFilter(self.malformed_log)

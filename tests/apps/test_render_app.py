@@ -256,7 +256,7 @@ def _disk_full(*_args, **_kwargs):
 
 
 def test_a_full_disk_mid_render_keeps_the_finished_frames_in_metrics(device, tmp_path, monkeypatch, capsys):
-    save_png = runner._save_png
+    save_png = runner.save_png
     calls = []
 
     def save_until_full(image, path):
@@ -267,7 +267,7 @@ def test_a_full_disk_mid_render_keeps_the_finished_frames_in_metrics(device, tmp
                 _disk_full()
         save_png(image, path)
 
-    monkeypatch.setattr(runner, "_save_png", save_until_full)
+    monkeypatch.setattr(runner, "save_png", save_until_full)
     out = tmp_path / "out"
     assert render.main([str(_tiny_scenario(tmp_path)), "--out", str(out), "--device", device]) == 1
     error = capsys.readouterr().err

@@ -170,7 +170,7 @@ def test_candidates_found_once_serve_every_sweep_they_cover(device):
         solver.step(state, state, control, 0.04)
     lifted = body + torch.tensor([0.0, 4e-3, 0.0], dtype=F64, device=body.device)
     rising = ClothControl(body, lifted, control.boundary_index, control.boundary_target)
-    X, target, ctx = solver._context(state, rising, 0.04)
+    X, target, ctx = solver.step_context(state, rising, 0.04)
     cover = solver.contact.cover(X, target, ctx.kinematic, ctx.x_rest, 5e-3)
     generator = torch.Generator().manual_seed(0)
 
@@ -223,11 +223,11 @@ def test_linear_solvers_take_the_same_steps(device):
 
     # one Newton system of the sheet in contact, solved by each
     solver = solvers["direct"]
-    X, target, ctx = solver._context(finals["direct"], control, 0.04)
+    X, target, ctx = solver.step_context(finals["direct"], control, 0.04)
     pairs = solver.contact.broad_phase(X, torch.zeros_like(X), ctx.kinematic, ctx.x_rest)
     _, grad, elements = solver.potential.evaluate(X, solver.contact.near(X, pairs), ctx)
     assert any(element.reach is not None and element.index.shape[0] for element in elements)  # contacts
-    matrix, rhs = solver._assemble(elements, grad, torch.zeros_like(X), ctx)
+    matrix, rhs = solver.assemble(elements, grad, torch.zeros_like(X), ctx)
     reference = solver.linear.solve(matrix, rhs.reshape(-1))
     for name in names:
         p = solvers[name].linear.solve(matrix, rhs.reshape(-1))

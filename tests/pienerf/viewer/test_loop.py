@@ -67,7 +67,7 @@ def test_click_picks_then_drags_and_bad_clicks_are_reported(app):
     assert len(app.errors) == 2 and all("click failed" in e for e in app.errors)
     assert "must be 3 finite numbers" in app.errors[0]
     # The viewer's own handler drops a malformed event before it reaches the loop.
-    app.viewer._on_click(SimpleNamespace(ray_origin=(1.0, 2.0), ray_direction=(0.0, 0.0, -1.0)))
+    app.viewer.on_click(SimpleNamespace(ray_origin=(1.0, 2.0), ray_direction=(0.0, 0.0, -1.0)))
     assert app.commands.empty() and "ignored a malformed click" in app.viewer.message.content
 
 
@@ -123,7 +123,7 @@ def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device
     try:
         sim = app.simulation
         assert app.render_mode == "mesh" and "nerf" not in sim.render_backends
-        app.submit("render mode", lambda: app.viewer._set_render_mode("nerf"))
+        app.submit("render mode", lambda: app.viewer.set_render_mode("nerf"))
         app.tick()
         assert app.nerf_job is not None and app.render_mode == "mesh", "the NeRF is fitted in the background"
         assert app.viewer.progress.visible
@@ -170,7 +170,7 @@ def test_render_menu_switches_to_the_nerf_and_serves_each_client_its_view(device
         middle = image[image.shape[0] // 3 : 2 * image.shape[0] // 3, image.shape[1] // 3 : 2 * image.shape[1] // 3]
         assert (np.abs(middle.astype(int) - 255).sum(-1) > 60).mean() > 0.05, "the plant is in the middle"
 
-        app.submit("render mode", lambda: app.viewer._set_render_mode("mesh"))
+        app.submit("render mode", lambda: app.viewer.set_render_mode("mesh"))
         app.tick()
         assert app.render_mode == "mesh" and app.viewer.mesh.visible and app.viewer.ground.visible
     finally:
@@ -214,10 +214,10 @@ def test_out_of_range_panel_values_are_refused_in_the_panel(app, caplog):
                 shown.append(viewer.message.content)
         return shown
 
-    before = viewer._malformed.count
+    before = viewer.malformed_log.count
     with caplog.at_level(logging.WARNING):
         shown = asyncio.run(send())
-    assert viewer._malformed.count == before + 1, "text for a number fails in viser's own cast: one line"
+    assert viewer.malformed_log.count == before + 1, "text for a number fails in viser's own cast: one line"
     assert "Traceback" not in caplog.text and "a viser client: dropped a malformed message" in caplog.text
     assert "refused: unknown render mode 'bogus'" in shown[0]
     assert "refused: young modulus must be a number in [100, 1e+09]" in shown[1], shown

@@ -151,14 +151,14 @@ def test_a_malformed_message_logs_one_line(viewer, caplog):
                 except websockets.ConnectionClosed:
                     pass
 
-    before = viewer._malformed.count
+    before = viewer.malformed_log.count
     with caplog.at_level(logging.WARNING):
         asyncio.run(send_garbage())
         for _ in range(100):  # the server thread logs after the connection closed
-            if viewer._malformed.count - before == 3:
+            if viewer.malformed_log.count - before == 3:
                 break
             asyncio.run(asyncio.sleep(0.05))
-    assert viewer._malformed.count - before == 3
+    assert viewer.malformed_log.count - before == 3
     lines = [r for r in caplog.records if r.name.startswith("websockets")]
     assert len(lines) == 1, "rate-limited: one line for three bad clients in a row"
     assert all(r.exc_info is None and "malformed" in r.getMessage() for r in lines)
