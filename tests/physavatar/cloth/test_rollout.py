@@ -4,9 +4,9 @@ against the forward sensitivities of :meth:`SolverCloth.sensitivity_step`, for e
 Step sizes and tolerances. The loss is ``L = Σ w · x`` over all frames with fixed random weights ``w``. The bar is
 the one the rollout is held to: relative error ≤ ``10⁻⁴`` in float64. A difference quotient of rollouts has two
 errors. Truncation: the central difference of step ``h`` errs by ``h² L‴/6``, which Richardson's extrapolation
-``(4 D(h/2) − D(h)) / 3`` takes to ``O(h⁴)``; ``L`` varies on the scale of each parameter, so a relative ``h = 0.05`` leaves ``≈ 10⁻⁶``. Noise: each
-rollout misses the exact minimisers by its Newton tolerance ``τ``; the test measures that miss ``e`` as the change
-of ``L`` from ``τ`` to ``0.3 τ`` (the miss scales with ``τ``, so ``e ≈ |ΔL| / 0.7``) and asserts that the
+``(4 D(h/2) − D(h)) / 3`` takes to ``O(h⁴)``; ``L`` varies on the scale of each parameter, so a relative
+``h = 0.05`` leaves ``≈ 10⁻⁶``. Noise: each rollout misses the exact minimisers by its Newton tolerance ``τ``; the
+test measures that miss ``e`` as the change of ``L`` from ``τ`` to ``0.3 τ`` (the miss scales with ``τ``, so ``e ≈ |ΔL| / 0.7``) and asserts that the
 extrapolation's share of it, ``3e/h``, stays below half the bar. ``τ = 10⁻⁸`` m/s; ``3·10⁻⁹`` is the tightest these
 scenes converge to (the line search compares energies to float64 rounding). Smaller steps ``h`` would not do: the
 derivatives of ``L`` are small (only ``κ_s/ρ`` and ``κ_b/ρ`` shape the motion), and ``e/h`` grows.
