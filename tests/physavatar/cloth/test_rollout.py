@@ -1,17 +1,17 @@
 """The garment rollout as a torch operation: adjoint gradients against central differences of whole rollouts and
 against the forward sensitivities of :meth:`SolverCloth.sensitivity_step`, for every differentiable input.
 
-Step sizes and tolerances. The loss is ``L = Σ w · x`` over all frames with fixed random weights ``w``. The bar is
-the one the rollout is held to: relative error ≤ ``10⁻⁴`` in float64. A difference quotient of rollouts has two
-errors. Truncation: the central difference of step ``h`` errs by ``h² L‴/6``, which Richardson's extrapolation
-``(4 D(h/2) − D(h)) / 3`` takes to ``O(h⁴)``; ``L`` varies on the scale of each parameter, so a relative
-``h = 0.05`` leaves ``≈ 10⁻⁶``. Noise: each rollout misses the exact minimisers by its Newton tolerance ``τ``; the
-test measures that miss ``e`` as the change of ``L`` from ``τ`` to ``0.3 τ`` (the miss scales with ``τ``, so ``e ≈ |ΔL| / 0.7``) and asserts that the
+Step sizes and tolerances. The loss is ``L = Σ w · x`` over all frames with fixed random weights ``w``. The bar is the
+one the rollout is held to: relative error ≤ ``10⁻⁴`` in float64. A difference quotient of rollouts has two errors.
+Truncation: the central difference of step ``h`` errs by ``h² L‴/6``, which Richardson's extrapolation ``(4 D(h/2) −
+D(h)) / 3`` takes to ``O(h⁴)``; ``L`` varies on the scale of each parameter, so a relative ``h = 0.05`` leaves ``≈
+10⁻⁶``. Noise: each rollout misses the exact minimisers by its Newton tolerance ``τ``; the test measures that miss ``e``
+as the change of ``L`` from ``τ`` to ``0.3 τ`` (the miss scales with ``τ``, so ``e ≈ |ΔL| / 0.7``) and asserts that the
 extrapolation's share of it, ``3e/h``, stays below half the bar. ``τ = 10⁻⁸`` m/s; ``3·10⁻⁹`` is the tightest these
 scenes converge to (the line search compares energies to float64 rounding). Smaller steps ``h`` would not do: the
-derivatives of ``L`` are small (only ``κ_s/ρ`` and ``κ_b/ρ`` shape the motion), and ``e/h`` grows.
-Adjoint and forward sensitivities linearise the same converged states, so they agree to the linear solves'
-rounding, ``T · cond(H) · ε``; the bound ``10⁻⁸`` leaves ``cond(H)`` up to ``10⁶`` on these few steps.
+derivatives of ``L`` are small (only ``κ_s/ρ`` and ``κ_b/ρ`` shape the motion), and ``e/h`` grows. Adjoint and forward
+sensitivities linearise the same converged states, so they agree to the linear solves' rounding, ``T · cond(H) · ε``;
+the bound ``10⁻⁸`` leaves ``cond(H)`` up to ``10⁶`` on these few steps.
 
 Friction is lagged (its normal forces, normals and closest points are those at the start of each step and held
 constant in the derivatives), so with friction the adjoint matches differences only as closely as the lagged model
