@@ -18,6 +18,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 
 from pienerf.paths import SHARED_DATA
+from pienerf.scenario.expectations import FULL_RUN_KEYS
 from pienerf.scenes import SCENES
 from pienerf.session import SimulationConfig
 from pienerf.sim.materials import Material
@@ -186,6 +187,7 @@ _SCHEMA = {
         "centre_displacement_m": _BAND,
         "converged_fraction": SettingRange(float, 0.0, 1.0),
         "warp_psnr_db": SettingRange(float, 0.0, 200.0, "dB"),
+        "warp_psnr_gain_db": SettingRange(float, 0.0, 200.0, "dB"),
     },
 }
 """Every key a scenario may hold, per table: its type, and for a number or a choice its
@@ -237,7 +239,8 @@ def _check_table(table: dict, section: str, where: str) -> None:
 def load_scenario(path: Path | str, smoke: bool = False, frames: int | None = None) -> dict:
     """Read and check a scenario; with ``smoke``, the ``[smoke]`` table shrinks it (its ``[smoke.expect]`` over the
     ``[expect]`` table, key by key, unless ``frames`` changes the smoke run's length); ``frames`` (1 to
-    :data:`MAX_FRAMES`) then replaces its frame count, volume samples past the end taken at the last frame.
+    :data:`MAX_FRAMES`) then replaces its frame count, volume samples past the end taken at the last frame. Either drops
+    the expectations measured on the full run (:data:`pienerf.scenario.expectations.FULL_RUN_KEYS`).
 
     Raises:
         ScenarioError: the file, a key or ``frames`` is bad; the message names it and the fix.
@@ -261,6 +264,10 @@ def load_scenario(path: Path | str, smoke: bool = False, frames: int | None = No
         _check_structure(scenario)
     except ScenarioError as error:
         raise ScenarioError(f"{path}: {error}") from None
+    if smoke or frames is not None:  # bounds measured on the full run
+        for table in [scenario.get("expect", {})] + [v.get("expect", {}) for v in scenario.get("variants", [])]:
+            for key in FULL_RUN_KEYS:
+                table.pop(key, None)
     if smoke and "smoke" in scenario:
         shrink = scenario["smoke"]
         solver, cameras = scenario.setdefault("solver", {}), scenario["cameras"]

@@ -81,3 +81,32 @@ def test_smoke_expectations_replace_the_full_size_keys_at_smoke_size(tmp_path):
         "converged_fraction": 0.9,
         "relative_volume": [0.9, 1.1],
     }
+
+
+def _warped(quadratic, linear):
+    metrics = _metrics()
+    metrics["warp_error"] = {"modes": {"nerf": {"mean_psnr_db": quadratic}, "nerf_linear": {"mean_psnr_db": linear}}}
+    return metrics
+
+
+def test_the_quadratic_warp_must_beat_the_linear_one_by_the_gain():
+    scenario = {"expect": {"warp_psnr_gain_db": 2.0}}
+    assert check_expectations(scenario, {"q": _warped(14.8, 11.0)})["passed"]
+    failed = check_expectations(scenario, {"q": _warped(12.0, 11.0)})
+    assert failed_lines(failed) == ["variant 'q': warp_psnr_gain_db = 1, expected >= 2"]
+    assert not check_expectations(scenario, {"q": _metrics(psnr=20.0)})["passed"]  # no linear warp to compare
+
+
+def test_full_run_bounds_are_dropped_from_smoke_and_shortened_runs(tmp_path):
+    path = tmp_path / "scenario.toml"
+    path.write_text(
+        '[scene]\nname = "teapot"\n[cameras]\n[expect]\nconverged_fraction = 0.9\nwarp_psnr_db = 10.0\n'
+        '[[variants]]\nname = "q"\nexpect = { warp_psnr_gain_db = 2.0, relative_volume = [0.5, 1.5] }\n'
+        "[smoke]\nframes = 2\n"
+    )
+    full = load_scenario(path)
+    assert full["expect"] == {"converged_fraction": 0.9, "warp_psnr_db": 10.0}
+    assert full["variants"][0]["expect"] == {"warp_psnr_gain_db": 2.0, "relative_volume": [0.5, 1.5]}
+    for short in (load_scenario(path, smoke=True), load_scenario(path, frames=4)):
+        assert short["expect"] == {"converged_fraction": 0.9}
+        assert short["variants"][0]["expect"] == {"relative_volume": [0.5, 1.5]}
