@@ -129,6 +129,8 @@ class CaptureIndex:
             empty dicts here).
         views: ``[T][C]`` the ``frames`` index of time index ``t`` seen by camera ``c``; ``None`` where the
             cameras and time indices do not form that grid.
+        times: the distinct time indices of the sound frame entries, sorted (``T`` of them where ``views`` is known;
+            a best guess of ``T`` where it is not).
         size: ``(w, h)`` image size in pixels, or ``None`` where unknown.
         rig: the cameras, or ``None`` where poses, intrinsics or the grid are broken.
         fps: frames per second, or ``None`` where missing or invalid.
@@ -140,6 +142,7 @@ class CaptureIndex:
     meta: dict
     frames: list[dict]
     views: list[list[int]] | None
+    times: list[int]
     size: tuple[int, int] | None
     rig: CameraRig | None
     fps: float | None
@@ -235,7 +238,8 @@ def read_index(folder: str | Path, findings: Findings, default_fps: float | None
                 rig = CameraRig(c2w, size[0], size[1], *intrinsics.unbind(1))
             except ValueError as error:
                 findings.problem(name, f"its cameras are invalid: {error}", "fix the intrinsics and image size")
-    return CaptureIndex(json_path, meta, frames, views, size, rig, fps, up, body_masks)
+    times = sorted({time for _, _, time, _ in entries})
+    return CaptureIndex(json_path, meta, frames, views, times, size, rig, fps, up, body_masks)
 
 
 def _fps(meta: dict, name: str, findings: Findings, default: float | None) -> float | None:
