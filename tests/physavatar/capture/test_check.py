@@ -1,14 +1,16 @@
 """check_capture finds every problem of a hand-written capture folder, each with its fix; ``apps.avatar check``."""
 
+import json
 import re
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
 from apps import avatar
-from physavatar.capture import CaptureCheck, Problem, check_capture
+from physavatar.capture import CaptureCheck, Problem, check_capture, load_capture_folder
 from tests.physavatar.capture.handmade import (
     CAMERAS,
     FRAMES,
@@ -19,6 +21,7 @@ from tests.physavatar.capture.handmade import (
     frame_of,
     garment_mesh,
     image_name,
+    to_z_up,
     write_capture_folder,
     write_obj,
 )
@@ -288,3 +291,29 @@ def test_the_check_command_prints_the_report_and_exits_0_or_2(good, capture, cap
     assert "problem 1: transforms.json: fps is 0" in out and "problem 2: garment.obj:" in out and "  fix: " in out
     assert avatar.main(["check", str(capture / "nowhere")]) == 2
     assert "does not exist" in capsys.readouterr().out
+
+
+def test_the_documented_example_is_a_capture_that_passes(tmp_path):
+    """docs/capture.md's transforms.json, with the hand-made scene standing on its floor (z up) and images of its
+    size: the check passes and the loader reads what the page says."""
+    text = (Path(__file__).parents[3] / "docs" / "capture.md").read_text()
+    meta = json.loads(re.search(r"```json\n(.*?)```", text, re.DOTALL).group(1))
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    lift = np.array([0.0, 0.0, 0.9])  # m: the capsule's foot on the floor
+    for t in range(2):
+        vertices, faces = body_mesh(t)
+        write_obj(folder / "body" / f"{t:04d}.obj", to_z_up(vertices) + lift, faces)
+    vertices, faces = garment_mesh()
+    write_obj(folder / "garment.obj", to_z_up(vertices) + lift, faces)
+    for frame in meta["frames"]:
+        for key in ("file_path", "mask_path"):
+            (folder / frame[key]).parent.mkdir(exist_ok=True)
+            Image.new("L" if key == "mask_path" else "RGB", (meta["w"], meta["h"]), 255).save(folder / frame[key])
+    check = check_capture(folder)
+    assert check.ok and not check.warnings, check.format()
+    assert dict(check.summary)["cameras seeing it"] == "2 of 2"
+    loaded = load_capture_folder(folder)
+    assert loaded.film.images.shape == (2, 2, 480, 640, 3) and loaded.boundary is None and loaded.up == "z"
+    assert loaded.film.rig.intrinsics[1].tolist() == [612.5, 611.8, 318.2, 243.1]
