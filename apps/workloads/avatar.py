@@ -62,7 +62,7 @@ def bench_splat(device: str, size: str) -> Case:
         rotation,
         scales.to(centre),
         rig.world_to_camera().to(dev),
-        (rig.fx, rig.fy, rig.cx, rig.cy),
+        rig.intrinsics,
         pixels,
         pixels,
     )

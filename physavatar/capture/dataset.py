@@ -1,11 +1,12 @@
 """The capture's files: a multi-view video on disk, written and read back (PhysAvatar §3.1 input).
 
-Files (:func:`write_capture`): a NeRF-synthetic style ``transforms.json`` (shared intrinsics ``camera_angle_x``,
-``fl_x``, ``fl_y``, ``cx``, ``cy``, ``w``, ``h``; ``fps``; ``lighting``; one frame per (time, camera) with
-``file_path``, ``mask_path``, ``transform_matrix``, ``camera`` and ``time_index``), 8-bit PNG images and masks,
-and ``truth.npz`` holding what evaluation needs and the pipeline must not see (meshes, albedo, parameters). Each file
-goes through a staging step passed in (:mod:`physavatar.result_files`), so a program can have every one written whole
-or not at all; ``transforms.json``, the index a reader opens first, comes last.
+Files (:func:`write_capture`): a NeRF-synthetic style ``transforms.json`` (image size ``w``, ``h``; ``fps``;
+``lighting``; one frame per (time, camera) with ``file_path``, ``mask_path``, ``transform_matrix``, ``camera`` and
+``time_index``; intrinsics ``camera_angle_x``/``_y``, ``fl_x``, ``fl_y``, ``cx``, ``cy`` at the top level when every
+camera shares them, else ``fl_x``, ``fl_y``, ``cx``, ``cy`` in each frame, nerfstudio's per-frame convention), 8-bit
+PNG images and masks, and ``truth.npz`` holding what evaluation needs and the pipeline must not see (meshes, albedo,
+parameters). Each file goes through a staging step passed in (:mod:`physavatar.result_files`), so a program can have
+every one written whole or not at all; ``transforms.json``, the index a reader opens first, comes last.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from physavatar.result_files import Staging, write_arrays, write_json, write_png
 _TRANSFORMS = "transforms.json"
 _TRUTH = "truth.npz"
 _JSON_KEY = "__json__"  # the truth file's entry holding its non-array values as JSON
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy")  # px, at the top level (shared) or in each frame (per camera)
 
 __all__ = [
     "Capture",
@@ -112,6 +114,15 @@ def write_capture(
     rig = capture.rig
     images = torch.round(capture.images.clamp(0.0, 1.0) * 255.0).to(torch.uint8).numpy()
     masks = capture.masks.numpy()
+    intrinsics = rig.intrinsics.tolist()
+    shared, per_frame = {}, [dict(zip(_INTRINSIC_KEYS, row, strict=True)) for row in intrinsics]
+    if rig.shared_intrinsics:
+        shared = {
+            "camera_angle_x": 2.0 * math.atan(0.5 * rig.width / intrinsics[0][0]),
+            "camera_angle_y": 2.0 * math.atan(0.5 * rig.height / intrinsics[0][1]),
+            **per_frame[0],
+        }
+        per_frame = [{} for _ in intrinsics]
     frames = []
     for t in range(capture.frame_count):
         for c in range(capture.camera_count):
@@ -125,15 +136,11 @@ def write_capture(
                     "transform_matrix": rig.c2w[c].tolist(),
                     "camera": c,
                     "time_index": t,
+                    **per_frame[c],
                 }
             )
     meta = {
-        "camera_angle_x": 2.0 * math.atan(0.5 * rig.width / rig.fx),
-        "camera_angle_y": 2.0 * math.atan(0.5 * rig.height / rig.fy),
-        "fl_x": rig.fx,
-        "fl_y": rig.fy,
-        "cx": rig.cx,
-        "cy": rig.cy,
+        **shared,
         "w": rig.width,
         "h": rig.height,
         "fps": capture.fps,
@@ -151,7 +158,10 @@ def load_capture(folder: str | Path) -> Capture:
     ``time_index`` per frame).
 
     Intrinsics are the top-level ``fl_x``/``fl_y`` (or ``camera_angle_x``/``camera_angle_y``), ``cx``, ``cy``,
-    ``w``, ``h``; a frame path without extension means ``.png``; ``fps`` defaults to 25.
+    ``w``, ``h``; a frame's own ``fl_x``, ``fl_y`` (or ``camera_angle_x``/``_y``), ``cx``, ``cy`` override them for
+    its camera (nerfstudio's per-frame intrinsics), and must be the same at every time index of that camera; a
+    missing ``fl_y`` means ``fl_x``, a missing principal point the image centre. A frame path without extension
+    means ``.png``; ``fps`` defaults to 25.
 
     Args:
         folder: the capture's folder, or its ``transforms.json``.
@@ -159,8 +169,8 @@ def load_capture(folder: str | Path) -> Capture:
     Raises:
         FileNotFoundError: ``transforms.json`` or an image or mask it lists is missing.
         ValueError: the json is malformed; the cameras are not numbered ``0..C−1``; a camera has fewer frames
-            than another; a time index lacks some camera (or holds one twice); a camera moves between frames;
-            an image or mask is corrupt or not ``w × h``.
+            than another; a time index lacks some camera (or holds one twice); a camera moves or changes its
+            intrinsics between frames; an image or mask is corrupt or not ``w × h``.
     """
     from PIL import Image
 
@@ -220,16 +230,22 @@ def load_capture(folder: str | Path) -> Capture:
     if width is None or height is None:
         with _open_image(path, by_camera[0][0]["file_path"], Image) as first:
             width, height = first.size
-    fx, fy = _focal(meta, "x", int(width), path), _focal(meta, "y", int(height), path)
-    rig = CameraRig(
-        c2w,
-        int(width),
-        int(height),
-        fx,
-        fy if fy is not None else fx,
-        float(meta.get("cx", 0.5 * int(width))),
-        float(meta.get("cy", 0.5 * int(height))),
-    )
+    width, height = int(width), int(height)
+    intrinsics = torch.empty(len(cameras), 4, dtype=torch.float64)
+    for c in cameras:
+        values = torch.tensor(
+            [_intrinsics(meta, by_camera[c][t], width, height, path) for t in times], dtype=torch.float64
+        )
+        changed = (values - values[0]).abs().amax(1) > 1e-9 * values[0].abs().amax().clamp_min(1.0)
+        if bool(changed.any()):
+            k = int(torch.nonzero(changed)[0])
+            raise ValueError(
+                f"camera {c} changes its intrinsics (fl_x, fl_y, cx, cy) between time indices in {path.name}: "
+                f"{values[0].tolist()} at time index {times[0]}, {values[k].tolist()} at {times[k]}; a CameraRig "
+                f"calibrates each camera once, so give every frame of camera {c} the same values"
+            )
+        intrinsics[c] = values[0]
+    rig = CameraRig(c2w, width, height, *intrinsics.unbind(1))
 
     images = torch.empty(len(times), len(cameras), rig.height, rig.width, 3, dtype=torch.float32)
     masks = torch.empty(len(times), len(cameras), rig.height, rig.width, dtype=torch.bool)
@@ -313,11 +329,25 @@ def _pose(frame: dict, json_path: Path) -> np.ndarray:
     return matrix
 
 
-def _focal(meta: dict, axis: str, size: int, json_path: Path) -> float | None:
-    if meta.get(f"fl_{axis}") is not None:
-        return float(meta[f"fl_{axis}"])
-    if meta.get(f"camera_angle_{axis}") is not None:
-        return 0.5 * size / math.tan(0.5 * float(meta[f"camera_angle_{axis}"]))
-    if axis == "y":
-        return None
-    raise ValueError(f"{json_path.name} gives no intrinsics: add 'fl_x' (pixels) or 'camera_angle_x' (radians)")
+def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Path) -> tuple[float, ...]:
+    """``(fx, fy, cx, cy)`` px of one frame: its own values where it gives them, else the top-level ones."""
+    fx = _first(_focal(frame, "x", width), _focal(meta, "x", width))
+    if fx is None:
+        raise ValueError(f"{json_path.name} gives no intrinsics: add 'fl_x' (pixels) or 'camera_angle_x' (radians)")
+    fy = _first(_focal(frame, "y", height), _focal(meta, "y", height), fx)
+    cx = _first(frame.get("cx"), meta.get("cx"), 0.5 * width)
+    cy = _first(frame.get("cy"), meta.get("cy"), 0.5 * height)
+    return fx, fy, float(cx), float(cy)
+
+
+def _first(*values):
+    return next((value for value in values if value is not None), None)
+
+
+def _focal(values: dict, axis: str, size: int) -> float | None:
+    """Focal length along ``axis`` in px from ``fl_{axis}`` or ``camera_angle_{axis}`` of ``values``, or ``None``."""
+    if values.get(f"fl_{axis}") is not None:
+        return float(values[f"fl_{axis}"])
+    if values.get(f"camera_angle_{axis}") is not None:
+        return 0.5 * size / math.tan(0.5 * float(values[f"camera_angle_{axis}"]))
+    return None

@@ -3,7 +3,8 @@
 Cameras (:class:`CameraRig`) follow the NeRF/OpenGL convention of the project's NeRF datasets: camera-to-world
 matrices whose camera looks along its −z axis with x right and y up; pixel ``(i, j)`` (column, row from the
 top-left corner) has its centre at ``(i + ½, j + ½)`` and its ray leaves along
-``((i + ½ − c_x) / f_x, −(j + ½ − c_y) / f_y, −1)`` in camera axes.
+``((i + ½ − c_x) / f_x, −(j + ½ − c_y) / f_y, −1)`` in camera axes, with that camera's own intrinsics (each camera of
+a studio rig is calibrated on its own; all share one image size).
 """
 
 from __future__ import annotations
@@ -28,27 +29,31 @@ __all__ = [
 
 @dataclass(frozen=True, eq=False)
 class CameraRig:
-    """A static rig of pinhole cameras sharing one intrinsic matrix.
+    """A static rig of pinhole cameras, each with its own intrinsics, all with one image size.
+
+    Each of ``fx``, ``fy``, ``cx``, ``cy`` is given as one number shared by every camera or as ``C`` numbers (a
+    sequence or tensor, one per camera); either way it is stored as a ``[C]`` tensor.
 
     Attributes:
         c2w: ``[C, 4, 4]`` float64 camera-to-world transforms (CPU), metres; camera axes x right, y up, looking
             along −z (NeRF/OpenGL).
-        width, height: image size, pixels.
-        fx, fy: focal lengths, pixels.
-        cx, cy: principal point, pixels from the image's top-left corner (pixel centres at ``i + ½``).
+        width, height: image size of every camera, pixels.
+        fx, fy: ``[C]`` float64 focal lengths (CPU), pixels.
+        cx, cy: ``[C]`` float64 principal points (CPU), pixels from the image's top-left corner (pixel centres at
+            ``i + ½``).
 
     Raises:
-        ValueError: ``c2w`` is not a non-empty finite ``[C, 4, 4]`` tensor, a size is not a positive integer or an
-            intrinsic is not finite (focal lengths positive).
+        ValueError: ``c2w`` is not a non-empty finite ``[C, 4, 4]`` tensor, a size is not a positive integer, or an
+            intrinsic is neither one number nor ``C`` numbers, or is not finite (focal lengths positive).
     """
 
     c2w: torch.Tensor
     width: int
     height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    fx: torch.Tensor
+    fy: torch.Tensor
+    cx: torch.Tensor
+    cy: torch.Tensor
 
     def __post_init__(self):
         c2w = self.c2w
@@ -64,10 +69,7 @@ class CameraRig:
                 raise ValueError(f"{name} must be a positive number of pixels, got {value!r}")
             object.__setattr__(self, name, int(value))
         for name in ("fx", "fy", "cx", "cy"):
-            value = float(getattr(self, name))
-            if not math.isfinite(value) or (name in ("fx", "fy") and value <= 0.0):
-                raise ValueError(f"{name} must be finite (focal lengths positive), in pixels, got {value}")
-            object.__setattr__(self, name, value)
+            object.__setattr__(self, name, _per_camera(name, getattr(self, name), len(c2w)))
 
     @classmethod
     def look_at(
@@ -154,12 +156,24 @@ class CameraRig:
         """``[C, 3]`` float64 camera centres, m."""
         return self.c2w[:, :3, 3]
 
+    @property
+    def intrinsics(self) -> torch.Tensor:
+        """``[C, 4]`` float64 rows ``(f_x, f_y, c_x, c_y)`` (CPU), pixels, one per camera."""
+        return torch.stack([self.fx, self.fy, self.cx, self.cy], 1)
+
+    @property
+    def shared_intrinsics(self) -> bool:
+        """Whether every camera has the same ``(f_x, f_y, c_x, c_y)``."""
+        intrinsics = self.intrinsics
+        return bool((intrinsics == intrinsics[0]).all())
+
     def world_to_camera(self) -> torch.Tensor:
         """``[C, 4, 4]`` float64 world-to-camera transforms (the inverses of :attr:`c2w`)."""
         return torch.linalg.inv(self.c2w)
 
     def rays(self, camera: int, device=None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Rays through every pixel centre of one camera, row-major (pixel ``(i, j)`` is row ``j·W + i``).
+        """Rays through every pixel centre of one camera, with its intrinsics, row-major (pixel ``(i, j)`` is row
+        ``j·W + i``).
 
         Args:
             camera: camera index.
@@ -176,14 +190,16 @@ class CameraRig:
             torch.arange(self.width, dtype=torch.float64) + 0.5,
             indexing="ij",
         )
-        local = torch.stack([(cols - self.cx) / self.fx, -(rows - self.cy) / self.fy, -torch.ones_like(rows)], -1)
+        fx, fy, cx, cy = self.intrinsics[c].tolist()
+        local = torch.stack([(cols - cx) / fx, -(rows - cy) / fy, -torch.ones_like(rows)], -1)
         directions = local.reshape(-1, 3) @ self.c2w[c, :3, :3].T
         directions = directions / directions.norm(dim=1, keepdim=True)
         origins = self.c2w[c, :3, 3].expand_as(directions)
         return origins.to(device, torch.float32).contiguous(), directions.to(device, torch.float32).contiguous()
 
     def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Pinhole projection of world points into every camera (differentiable, in the dtype of ``points``).
+        """Pinhole projection of world points into every camera, each with its own intrinsics (differentiable, in
+        the dtype of ``points``).
 
         Args:
             points: ``[N, 3]`` world points, m, on any device.
@@ -199,14 +215,37 @@ class CameraRig:
         w2c = self.world_to_camera().to(points.device, dtype)
         local = torch.einsum("cij,nj->cni", w2c[:, :3, :3], points.to(dtype)) + w2c[:, None, :3, 3]
         depth = -local[..., 2]
-        x = self.cx + self.fx * local[..., 0] / depth
-        y = self.cy - self.fy * local[..., 1] / depth
+        fx, fy, cx, cy = self.intrinsics.to(points.device, dtype)[:, :, None].unbind(1)  # [C, 1] each
+        x = cx + fx * local[..., 0] / depth
+        y = cy - fy * local[..., 1] / depth
         return torch.stack([x, y], -1), depth
 
     def _index(self, camera: int) -> int:
         if isinstance(camera, bool) or not isinstance(camera, (int, np.integer)) or not 0 <= camera < len(self):
             raise IndexError(f"camera must be an index in 0..{len(self) - 1}, got {camera!r}")
         return int(camera)
+
+
+def _per_camera(name: str, value, count: int) -> torch.Tensor:
+    """``[count]`` float64 CPU copy of intrinsic ``name`` (px), given as one number or one per camera; validated."""
+    try:
+        values = torch.as_tensor(value, dtype=torch.float64).detach().to("cpu")
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise ValueError(
+            f"{name} must be numbers in pixels ({error}); pass a float or a length-{count} sequence (one per camera)"
+        ) from error
+    if values.dim() == 0:
+        values = values.expand(count)
+    if tuple(values.shape) != (count,):
+        raise ValueError(
+            f"{name} must be one number for every camera or {count} numbers (one per camera), in pixels, "
+            f"got shape {tuple(values.shape)}; pass a float or a length-{count} sequence"
+        )
+    if not bool(torch.isfinite(values).all()) or (name in ("fx", "fy") and not bool((values > 0.0).all())):
+        raise ValueError(
+            f"{name} must be finite (focal lengths positive), in pixels, got {values.tolist()}; fix the calibration"
+        )
+    return values.clone()
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -15,7 +15,8 @@ to the image with the Jacobian of the pinhole projection at the mean (EWA splatt
 here is torch and differentiable in the vertices, colours, scales and opacities.
 
 Cameras follow :class:`physavatar.capture.CameraRig`: NeRF/OpenGL camera-to-world matrices (x right, y up, looking
-along −z) and a shared pinhole ``(fx, fy, cx, cy)`` with the image's y axis pointing down.
+along −z) and pinhole intrinsics ``(fx, fy, cx, cy)``, shared by every camera or one row per camera
+(:attr:`physavatar.capture.CameraRig.intrinsics`), with the image's y axis pointing down.
 """
 
 from __future__ import annotations
@@ -197,7 +198,7 @@ def project_gaussians(
     rotations: torch.Tensor,
     scales: torch.Tensor,
     world_to_camera: torch.Tensor,
-    intrinsics: tuple[float, float, float, float],
+    intrinsics: tuple[float, float, float, float] | torch.Tensor,
     width: int,
     height: int,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -208,15 +209,20 @@ def project_gaussians(
         rotations: ``[N, 3, 3]`` rotations (columns are the principal axes).
         scales: ``[N, 3]`` standard deviations along those axes, m.
         world_to_camera: ``[C, 4, 4]`` OpenGL-convention view matrices (the camera looks along −z).
-        intrinsics: ``(fx, fy, cx, cy)`` px; the image's y axis points down.
+        intrinsics: ``(fx, fy, cx, cy)`` px shared by every view, or a ``[C, 4]`` tensor of one such row per view
+            (e.g. :attr:`physavatar.capture.CameraRig.intrinsics`; any dtype and device, used in those of
+            ``means``); the image's y axis points down.
         width, height: image size, px (for the radii's culling only).
 
     Returns:
         ``means2d [C, N, 2]`` px, ``conics [C, N, 3]`` (a, b, c) of the inverse 2D covariance, px⁻²,
         ``depths [C, N]`` m, ``radii [C, N]`` int32 (3σ of the larger eigenvalue; 0 when culled: behind the near
         plane or wholly off screen).
+
+    Raises:
+        ValueError: ``intrinsics`` is neither four numbers nor a ``[C, 4]`` tensor.
     """
-    fx, fy, cx, cy = intrinsics
+    fx, fy, cx, cy = _view_intrinsics(intrinsics, world_to_camera.shape[0], means)
     w2c = world_to_camera.to(means)
     rot, t = w2c[:, :3, :3], w2c[:, :3, 3]
     p = torch.einsum("cij,nj->cni", rot, means) + t[:, None]  # [C, N, 3]
@@ -224,12 +230,13 @@ def project_gaussians(
     d = depth.clamp_min(_NEAR)
     u = fx * p[..., 0] / d + cx
     v = -fy * p[..., 1] / d + cy
-    # Jacobian of (u, v) with respect to camera coordinates, at the mean.
+    # Jacobian of (u, v) with respect to camera coordinates, at the mean. `f * d.reciprocal()` is what `f / d` does
+    # for a float f: shared and per-view intrinsics go through one arithmetic.
     zero = torch.zeros_like(d)
     jac = torch.stack(
         [
-            torch.stack([fx / d, zero, fx * p[..., 0] / (d * d)], -1),
-            torch.stack([zero, -fy / d, -fy * p[..., 1] / (d * d)], -1),
+            torch.stack([fx * d.reciprocal(), zero, fx * p[..., 0] / (d * d)], -1),
+            torch.stack([zero, -fy * d.reciprocal(), -fy * p[..., 1] / (d * d)], -1),
         ],
         -2,
     )  # [C, N, 2, 3]
@@ -250,12 +257,32 @@ def project_gaussians(
     return torch.stack([u, v], -1), conics, depth, radii
 
 
+def _view_intrinsics(intrinsics, views: int, like: torch.Tensor):
+    """``(fx, fy, cx, cy)`` px: four floats shared by every view, or four ``[C, 1]`` columns of a ``[C, 4]`` tensor
+    in the dtype and device of ``like`` (so that they broadcast against ``[C, N]`` per-view values)."""
+    if isinstance(intrinsics, torch.Tensor):
+        if tuple(intrinsics.shape) != (views, 4):
+            raise ValueError(
+                f"intrinsics must be a [{views}, 4] tensor (fx, fy, cx, cy per view) for {views} views, got "
+                f"{tuple(intrinsics.shape)}; pass CameraRig.intrinsics or four floats shared by every view"
+            )
+        return intrinsics.to(like)[:, :, None].unbind(1)
+    try:
+        fx, fy, cx, cy = (float(value) for value in intrinsics)
+    except (TypeError, ValueError, RuntimeError) as error:
+        raise ValueError(
+            f"intrinsics must be four floats (fx, fy, cx, cy) px or a [{views}, 4] tensor, got {intrinsics!r}; "
+            "pass CameraRig.intrinsics for per-camera values"
+        ) from error
+    return fx, fy, cx, cy
+
+
 def render_mesh_gaussians(
     vertices: torch.Tensor,
     faces: torch.Tensor,
     appearance: GaussianAppearance,
     world_to_camera: torch.Tensor,
-    intrinsics: tuple[float, float, float, float],
+    intrinsics: tuple[float, float, float, float] | torch.Tensor,
     width: int,
     height: int,
     background: torch.Tensor | None = None,

@@ -233,7 +233,7 @@ def track(
     device = backend.torch_device()
     rig = capture.rig
     w2c = rig.world_to_camera().to(device)
-    intrinsics = (rig.fx, rig.fy, rig.cx, rig.cy)
+    intrinsics = rig.intrinsics.to(device)
     width, height = rig.width, rig.height
     background = torch.ones(3, dtype=torch.float32, device=device)
     faces = faces.long().to(device)

@@ -42,6 +42,14 @@ def _rig(count: int = 3) -> CameraRig:
     return CameraRig.ring(count, 1.3, 1.0, (0.0, -0.3, 0.0), 48, 40, 40.0)
 
 
+def _calibrated_rig() -> CameraRig:
+    """Three cameras of :func:`_rig`'s ring, each with its own focal lengths and principal point (px)."""
+    ring = _rig()
+    return CameraRig(
+        ring.c2w, 48, 40, [40.0 / 3.0, 61.7, 52.123456789], (55.0, 60.1, 49.9), torch.tensor([24.0, 23.1, 25.7]), 20.3
+    )
+
+
 def _small_capture(frames: int = 2) -> tuple[Capture, dict]:
     sheet, sheet_faces = _sheet()
     ball, ball_faces = _ball()
@@ -77,6 +85,58 @@ def test_ring_cameras_look_at_target_from_the_circle():
     assert bool((above[:, 0, 1] < 24.0).all())
     _, behind = rig.project((2.0 * rig.centers[0] - target)[None])
     assert float(behind[0, 0]) < 0.0
+
+
+def test_intrinsics_are_per_camera_tensors_given_as_floats_or_sequences():
+    rig = _calibrated_rig()
+    for name in ("fx", "fy", "cx", "cy"):
+        value = getattr(rig, name)
+        assert value.shape == (3,) and value.dtype == torch.float64 and value.device.type == "cpu"
+    assert rig.intrinsics.shape == (3, 4) and rig.intrinsics.dtype == torch.float64
+    cx = float(torch.tensor(23.1))  # cx came as a float32 tensor: widened exactly
+    assert torch.equal(rig.intrinsics[1], torch.tensor([61.7, 60.1, cx, 20.3], dtype=torch.float64))
+    assert not rig.shared_intrinsics
+    ring = _rig()
+    assert ring.shared_intrinsics and torch.equal(ring.intrinsics, ring.intrinsics[:1].expand(3, 4))
+    focal = torch.tensor([50.0, 51.0, 52.0], requires_grad=True)
+    copied = CameraRig(ring.c2w, 48, 40, focal, 50.0, 24.0, 20.0)
+    assert not copied.fx.requires_grad
+    focal.data[0] = 99.0  # the rig keeps its own copy
+    assert float(copied.fx[0]) == 50.0
+    with pytest.raises(ValueError, match=r"fy must be one number for every camera or 3 numbers.*length-3"):
+        CameraRig(ring.c2w, 48, 40, 50.0, [50.0, 51.0], 24.0, 20.0)
+    with pytest.raises(ValueError, match=r"fx must be finite \(focal lengths positive\)"):
+        CameraRig(ring.c2w, 48, 40, [50.0, 0.0, 50.0], 50.0, 24.0, 20.0)
+    with pytest.raises(ValueError, match=r"cx must be finite"):
+        CameraRig(ring.c2w, 48, 40, 50.0, 50.0, [24.0, float("nan"), 24.0], 20.0)
+    with pytest.raises(ValueError, match=r"cy must be numbers in pixels.*length-3 sequence"):
+        CameraRig(ring.c2w, 48, 40, 50.0, 50.0, 24.0, "centre")
+
+
+def test_each_camera_rays_and_projects_with_its_own_intrinsics():
+    """A rig of cameras calibrated separately computes camera c as the rig of camera c alone would, bit for bit."""
+    rig = _calibrated_rig()
+    points = torch.tensor([[0.1, -0.2, 0.05], [-0.3, -0.35, 0.2], [0.0, 0.1, -0.25]], dtype=torch.float64)
+    pixels, depth = rig.project(points)
+    for c in range(len(rig)):
+        alone = CameraRig(rig.c2w[c : c + 1], rig.width, rig.height, *rig.intrinsics[c].tolist())
+        for mine, theirs in zip(rig.rays(c, "cpu"), alone.rays(0, "cpu"), strict=True):
+            assert torch.equal(mine, theirs)
+        # The same poses sharing camera c's intrinsics: one batch of pose arithmetic (a batched matrix product may
+        # round differently from a single camera's), so camera c's pixels agree exactly.
+        shared = CameraRig(rig.c2w, rig.width, rig.height, *rig.intrinsics[c].tolist())
+        shared_pixels, shared_depth = shared.project(points)
+        assert torch.equal(pixels[c], shared_pixels[c]) and torch.equal(depth[c], shared_depth[c])
+        assert rig.project(points.float())[0][c].dtype == torch.float32
+        # A point 1.5 m along the ray through a pixel centre projects to that centre, up to the rounding of the
+        # float32 rays (origins ~1.6 m away): a few ε₃₂ · f px.
+        origins, directions = rig.rays(c, "cpu")
+        on_ray = (origins + 1.5 * directions).double()
+        pixel = torch.arange(rig.height * rig.width)
+        centres = torch.stack([pixel % rig.width, pixel // rig.width], 1).double() + 0.5
+        tolerance = 16 * 2**-24 * float(rig.fx[c].max(rig.fy[c]))
+        torch.testing.assert_close(rig.project(on_ray)[0][c], centres, atol=tolerance, rtol=0)
+    assert not torch.equal(pixels[0], CameraRig(rig.c2w, 48, 40, *rig.intrinsics[1].tolist()).project(points)[0][0])
 
 
 def test_projection_of_a_pixels_first_hit_is_its_centre(device):
@@ -216,20 +276,77 @@ def test_write_and_load_round_trip(device, tmp_path):
     assert path.name == "transforms.json"
     meta = json.loads(path.read_text())
     assert len(meta["frames"]) == 2 * 3 and meta["w"] == 48 and meta["h"] == 40
-    assert {"file_path", "mask_path", "transform_matrix", "camera", "time_index"} <= set(meta["frames"][0])
+    assert {"file_path", "mask_path", "transform_matrix", "camera", "time_index"} == set(meta["frames"][0])
+    assert {"fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"} <= set(meta)  # shared intrinsics
     for source in (tmp_path / "cap", path):
         loaded = load_capture(source)
         assert torch.equal(loaded.images, capture.images)
         assert torch.equal(loaded.masks, capture.masks)
         assert torch.equal(loaded.rig.c2w, capture.rig.c2w)
-        for key in ("width", "height", "fx", "fy", "cx", "cy"):
-            assert getattr(loaded.rig, key) == getattr(capture.rig, key)
+        assert (loaded.rig.width, loaded.rig.height) == (capture.rig.width, capture.rig.height)
+        assert torch.equal(loaded.rig.intrinsics, capture.rig.intrinsics)
         assert loaded.fps == 25.0 and loaded.lighting == capture.lighting and loaded.background == (1.0, 1.0, 1.0)
     stored = load_truth(tmp_path / "cap")
     assert torch.equal(stored["garment_frames"], truth["garment_frames"])
     assert torch.equal(stored["garment_faces"], truth["garment_faces"])
     assert torch.equal(stored["albedo"], truth["albedo"])
     assert stored["params"] == truth["params"] and stored["fps"] == 25.0
+
+
+def _calibrated_capture(frames: int = 2) -> Capture:
+    """8-bit noise seen by :func:`_calibrated_rig` (the files only, no rendering)."""
+    generator = torch.Generator().manual_seed(0)
+    images = torch.randint(0, 256, (frames, 3, 40, 48, 3), generator=generator).float() / 255.0
+    return Capture(images, images[..., 0] > 0.5, _calibrated_rig(), 25.0, Lighting())
+
+
+def test_per_camera_intrinsics_round_trip_in_each_frame(tmp_path):
+    capture = _calibrated_capture()
+    path = write_capture(capture, tmp_path / "cap")
+    meta = json.loads(path.read_text())
+    assert not {"fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"} & set(meta)
+    for frame in meta["frames"]:
+        row = capture.rig.intrinsics[frame["camera"]].tolist()
+        assert [frame[key] for key in ("fl_x", "fl_y", "cx", "cy")] == row
+    loaded = load_capture(tmp_path / "cap")
+    assert torch.equal(loaded.rig.intrinsics, capture.rig.intrinsics)  # float64 survives the json exactly
+    assert torch.equal(loaded.rig.c2w, capture.rig.c2w) and torch.equal(loaded.images, capture.images)
+    assert torch.equal(loaded.masks, capture.masks)
+
+
+def test_per_frame_intrinsics_override_the_shared_ones_and_must_hold_for_all_time(tmp_path):
+    capture = _calibrated_capture()
+    calibrated = tmp_path / "calibrated"
+    write_capture(capture, calibrated)
+    shared = tmp_path / "shared"
+    write_capture(Capture(capture.images, capture.masks, _rig(), 25.0, None), shared)
+
+    def own_focal(meta):  # camera 2 gives its own focal length in every frame, the others keep the shared values
+        for frame in meta["frames"]:
+            if frame["camera"] == 2:
+                frame["fl_x"] = 70.5
+
+    _edit(shared, own_focal)
+    rig = load_capture(shared).rig
+    expected = _rig().intrinsics
+    expected[2, 0] = 70.5
+    assert torch.equal(rig.intrinsics, expected)
+
+    def zoom(meta):
+        for frame in meta["frames"]:
+            if (frame["camera"], frame["time_index"]) == (1, 1):
+                frame["fl_x"] *= 1.1
+
+    _edit(calibrated, zoom)
+    with pytest.raises(ValueError, match=r"camera 1 changes its intrinsics .* at 1; .*every frame of camera 1"):
+        load_capture(calibrated)
+
+    def zoom_once(meta):  # a shared focal length that one frame overrides is a change too
+        next(f for f in meta["frames"] if (f["camera"], f["time_index"]) == (0, 1))["fl_y"] = 80.0
+
+    _edit(shared, zoom_once)
+    with pytest.raises(ValueError, match=r"camera 0 changes its intrinsics"):
+        load_capture(shared)
 
 
 def _edit(folder, change):
