@@ -26,7 +26,8 @@ Tests that need the folder build it once per session with a fixture such as::
         return folder, build_handmade_capture(folder)
 
 and never write into it (copy it with ``shutil.copytree`` to break it on purpose). At the default size the build
-takes about 5 s on one CPU thread, most of it the mannequin's surface extraction and the skirt's simulation.
+takes about 2.5 s on a 2-core CPU, 1.5 s of it the mannequin's surface extraction, which a process does once: a
+second capture takes under 1 s.
 """
 
 from __future__ import annotations
