@@ -5,6 +5,7 @@
     python -m apps.avatar simulate --smoke --out out/smoke
     python -m apps.avatar pipeline --out out/avatar [--smoke] [--device cuda]
     python -m apps.avatar capture|track|estimate|appearance|animate|evaluate --out out/avatar [--smoke]
+    python -m apps.avatar check CAPTURE
 
 ``simulate`` dresses the procedural mannequin (:class:`physavatar.body.Body`) in a garment (default: the
 DiffCloth skirt ``skirt1252.obj`` from the shared data folder, or the embedded procedural skirt where that folder
@@ -20,6 +21,10 @@ an unseen motion and writes the Table-2-style report ``evaluate/report.md`` (+ J
 run one stage each, reading the earlier stages' folders under ``--out``; pass ``--smoke`` to all or to none.
 ``estimate --exact`` fits the true meshes instead of the tracked ones. Bad input prints one line and exits with
 status 2.
+
+``check`` validates a researcher's capture folder (``docs/capture.md``) before any heavy work
+(:func:`physavatar.capture.check_capture`): it prints a summary table when the capture is usable (exit status 0,
+warnings allowed) and otherwise every problem with its fix (exit status 2).
 
 Every command checks ``--out`` and the result paths under it before any work and writes each file whole or not at
 all (:func:`pienerf.output_files.atomic_path`): a file from an earlier run is replaced only by a complete one.
@@ -43,6 +48,7 @@ from kernels import backend
 from physavatar import pipeline
 from physavatar import simulate as sim
 from physavatar.body import MOTIONS, Body, load_bvh, named_motion
+from physavatar.capture import check_capture
 from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
 from physavatar.result_files import Staging
 from pienerf.output_files import atomic_path, check_output_folder
@@ -128,6 +134,8 @@ def _parser() -> argparse.ArgumentParser:
             )
         if name == "estimate":
             stage.add_argument("--exact", action="store_true", help="fit the true meshes instead of the tracked ones")
+    check = commands.add_parser("check", help="check a capture folder for problems before any heavy work")
+    check.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture folder (or its transforms.json)")
     return parser
 
 
@@ -365,11 +373,20 @@ def stage_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def check_command(args: argparse.Namespace) -> int:
+    """Print the capture's check report; exit status 0 when usable (warnings allowed), 2 with problems."""
+    report = check_capture(args.capture)
+    print(report.format())
+    return 0 if report.ok else 2
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
         if args.command == "simulate":
             return simulate_command(args)
+        if args.command == "check":
+            return check_command(args)
         return stage_command(args)
     except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)

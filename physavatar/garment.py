@@ -62,16 +62,21 @@ class Garment:
         faces: ``[F, 3]`` int64 vertex indices, manifold, consistently oriented.
         name: the file's stem, or a name the caller gave.
         notes: what loading and placement changed (welds, unit rescaling, translation), one sentence each.
+        vertex_map: ``[N]`` int64 for a garment read by :func:`load_garment`: the vertex (index into ``vertices``)
+            that each of the file's ``N`` vertices became after welding, in the file's vertex order, ``-1`` for a
+            file vertex in no triangle; ``None`` otherwise. Indices given against the file (say, its boundary
+            vertices) go through it.
     """
 
     vertices: torch.Tensor
     faces: torch.Tensor
     name: str
     notes: tuple[str, ...] = ()
+    vertex_map: torch.Tensor | None = None
 
     def replace(self, vertices: torch.Tensor, note: str) -> Garment:
         """The same garment with new vertex positions ``[V, 3]`` and one more note."""
-        return Garment(vertices, self.faces, self.name, (*self.notes, note))
+        return Garment(vertices, self.faces, self.name, (*self.notes, note), self.vertex_map)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -101,8 +106,7 @@ def load_garment(path: str | Path, scale: float | str | None = "auto", weld_tole
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"garment file {path} does not exist; pass the path of an OBJ or PLY mesh")
-    if path.suffix.lower() == ".obj":
-        _check_obj_lines(path)
+    file_vertices = _check_obj_lines(path) if path.suffix.lower() == ".obj" else None
     try:
         mesh = trimesh.load(path, process=False, force="mesh")
         vertices = np.asarray(mesh.vertices, dtype=np.float64)
@@ -127,21 +131,33 @@ def load_garment(path: str | Path, scale: float | str | None = "auto", weld_tole
     notes = []
     diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
     count = vertices.shape[0]
-    vertices, faces = _drop_unused(*_weld(vertices, faces, weld_tolerance * diagonal))
+    loaded = _file_order(file_vertices, vertices, diagonal)
+    parent = _weld(vertices, weld_tolerance * diagonal)
+    used = np.unique(parent[faces])
+    renumber = np.full(count, -1, dtype=np.int64)
+    renumber[used] = np.arange(len(used))
+    vertices, faces = vertices[used], renumber[parent[faces]]
+    vertex_map = np.where(loaded >= 0, renumber[parent[loaded]], -1)
     if vertices.shape[0] < count:
         notes.append(f"welded {count} vertices into {vertices.shape[0]} (tolerance {weld_tolerance:g} × size)")
     _validate(vertices, faces, path.name, welded=bool(notes))
     vertices, note = _rescale(vertices, scale, path.name)
     if note:
         notes.append(note)
-    return Garment(torch.from_numpy(vertices), torch.from_numpy(faces), path.stem, tuple(notes))
+    return Garment(
+        torch.from_numpy(vertices), torch.from_numpy(faces), path.stem, tuple(notes), torch.from_numpy(vertex_map)
+    )
 
 
-def _check_obj_lines(path: Path) -> None:
+def _check_obj_lines(path: Path) -> np.ndarray:
     """Refuse an OBJ whose text, vertex or face lines are malformed, naming the line (trimesh skips or guesses).
 
     ``v`` lines need three finite numbers; ``f`` lines at least three references whose vertex index is a
     non-zero integer within the vertices the file defines (negative: counted back from the latest one).
+
+    Returns:
+        ``[N, 3]`` float64 the ``v`` lines' positions in file order (trimesh drops vertices in no face and splits
+        them along texture seams, so its order is not the file's).
     """
     raw = path.read_bytes()
     try:
@@ -150,7 +166,7 @@ def _check_obj_lines(path: Path) -> None:
         line = raw.count(b"\n", 0, error.start) + 1
         raise ValueError(f"{path.name}:{line}: not a text OBJ file (byte {error.start} is not UTF-8)") from None
     total = sum(1 for line in text.splitlines() if line.split()[:1] == ["v"])
-    seen = 0
+    positions = []
     for number, line in enumerate(text.splitlines(), start=1):
         tokens = line.split("#", 1)[0].split()
         if not tokens:
@@ -164,22 +180,24 @@ def _check_obj_lines(path: Path) -> None:
                 values = []
             if len(values) != 3 or not all(math.isfinite(v) for v in values):
                 raise ValueError(f"{path.name}:{number}: a vertex needs three finite numbers, got {line.strip()!r}")
-            seen += 1
+            positions.append(values)
         elif tokens[0] == "f":
             if len(tokens) < 4:
                 raise ValueError(f"{path.name}:{number}: a face needs at least three vertices, got {line.strip()!r}")
             for ref in tokens[1:]:
                 head = ref.split("/", 1)[0]
                 index = int(head) if head.lstrip("-").isascii() and head.lstrip("-").isdigit() else 0
-                if index == 0 or index > total or index < -seen:
+                if index == 0 or index > total or index < -len(positions):
                     raise ValueError(
                         f"{path.name}:{number}: face vertex {ref!r} is not an index of the file's {total} vertices "
                         "(1-based, or negative counting back)"
                     )
+    return np.asarray(positions, dtype=np.float64).reshape(-1, 3)
 
 
-def _weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
-    """Merge vertices within ``tolerance`` of each other (union-find over close pairs); the lowest index survives."""
+def _weld(vertices: np.ndarray, tolerance: float) -> np.ndarray:
+    """``[V]`` the vertex each vertex merges into: vertices within ``tolerance`` of each other are merged (union-find
+    over close pairs); the lowest index survives."""
     pairs = cKDTree(vertices).query_pairs(tolerance, output_type="ndarray") if tolerance > 0 else np.zeros((0, 2))
     parent = np.arange(vertices.shape[0])
     if len(pairs):
@@ -193,12 +211,18 @@ def _weld(vertices: np.ndarray, faces: np.ndarray, tolerance: float) -> tuple[np
                 parent[max(ra, rb)] = min(ra, rb)
         for i in range(len(parent)):  # flatten: parents precede children after the min-rule above
             parent[i] = parent[parent[i]]
-    return vertices, parent[faces]
+    return parent
 
 
-def _drop_unused(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    used, inverse = np.unique(faces.reshape(-1), return_inverse=True)
-    return vertices[used], inverse.reshape(-1, 3)
+def _file_order(file_vertices: np.ndarray | None, vertices: np.ndarray, diagonal: float) -> np.ndarray:
+    """``[N]`` the loaded vertex at each file vertex's position (``-1``: none, a vertex in no face), for the
+    ``file_vertices [N, 3]`` of an OBJ's text; a format trimesh reads in file order (``None``) maps to itself."""
+    if file_vertices is None:
+        return np.arange(vertices.shape[0])
+    if not len(file_vertices) or not len(vertices):
+        return np.full(len(file_vertices), -1, dtype=np.int64)
+    distance, nearest = cKDTree(vertices).query(file_vertices)
+    return np.where(distance <= 1e-12 * max(diagonal, 1.0), nearest, -1).astype(np.int64)
 
 
 def _edge_uses(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -21,13 +21,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from physavatar.capture.layout import INTRINSIC_KEYS, TRANSFORMS, Findings, read_index, read_views
 from physavatar.capture.rig import CameraRig, Lighting
 from physavatar.result_files import Staging, write_arrays, write_json, write_png
 
-_TRANSFORMS = "transforms.json"
 _TRUTH = "truth.npz"
 _JSON_KEY = "__json__"  # the truth file's entry holding its non-array values as JSON
-_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy")  # px, at the top level (shared) or in each frame (per camera)
+_DEFAULT_FPS = 25.0  # frames per second of a capture whose transforms.json gives none
 
 __all__ = [
     "Capture",
@@ -115,7 +115,7 @@ def write_capture(
     images = torch.round(capture.images.clamp(0.0, 1.0) * 255.0).to(torch.uint8).numpy()
     masks = capture.masks.numpy()
     intrinsics = rig.intrinsics.tolist()
-    shared, per_frame = {}, [dict(zip(_INTRINSIC_KEYS, row, strict=True)) for row in intrinsics]
+    shared, per_frame = {}, [dict(zip(INTRINSIC_KEYS, row, strict=True)) for row in intrinsics]
     if rig.shared_intrinsics:
         shared = {
             "camera_angle_x": 2.0 * math.atan(0.5 * rig.width / intrinsics[0][0]),
@@ -150,18 +150,18 @@ def write_capture(
     }
     if truth_arrays is not None:
         write_arrays(folder / _TRUTH, staging, **truth_arrays)
-    return write_json(folder / _TRANSFORMS, meta, staging, indent=1)
+    return write_json(folder / TRANSFORMS, meta, staging, indent=1)
 
 
 def load_capture(folder: str | Path) -> Capture:
     """Read a capture written by :func:`write_capture` (or any such ``transforms.json`` with ``camera`` and
-    ``time_index`` per frame).
+    ``time_index`` per frame), through the parser of :mod:`physavatar.capture.layout`.
 
     Intrinsics are the top-level ``fl_x``/``fl_y`` (or ``camera_angle_x``/``camera_angle_y``), ``cx``, ``cy``,
     ``w``, ``h``; a frame's own ``fl_x``, ``fl_y`` (or ``camera_angle_x``/``_y``), ``cx``, ``cy`` override them for
     its camera (nerfstudio's per-frame intrinsics), and must be the same at every time index of that camera; a
-    missing ``fl_y`` means ``fl_x``, a missing principal point the image centre. A frame path without extension
-    means ``.png``; ``fps`` defaults to 25.
+    missing ``fl_y`` means ``fl_x``, a missing principal point the image centre, a missing ``w``/``h`` the first
+    image's size. A frame path without extension means ``.png``; ``fps`` defaults to 25.
 
     Args:
         folder: the capture's folder, or its ``transforms.json``.
@@ -172,102 +172,14 @@ def load_capture(folder: str | Path) -> Capture:
             than another; a time index lacks some camera (or holds one twice); a camera moves or changes its
             intrinsics between frames; an image or mask is corrupt or not ``w × h``.
     """
-    from PIL import Image
-
     path = Path(folder)
-    path = path if path.suffix == ".json" else path / _TRANSFORMS
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist: a capture folder needs its {_TRANSFORMS}")
-    try:
-        meta = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ValueError(f"{path} is not valid json: {error}") from error
-    frames = meta.get("frames") if isinstance(meta, dict) else None
-    if not frames:
-        raise ValueError(f"{path} lists no frames; it needs a non-empty 'frames' list")
-    for k, frame in enumerate(frames):
-        missing = [
-            key for key in ("file_path", "mask_path", "transform_matrix", "camera", "time_index") if key not in frame
-        ]
-        if missing:
-            raise ValueError(f"frame {k} of {path.name} lacks {', '.join(missing)}")
-
-    by_camera: dict[int, dict[int, dict]] = {}
-    for frame in frames:
-        c, t = int(frame["camera"]), int(frame["time_index"])
-        views = by_camera.setdefault(c, {})
-        if t in views:
-            raise ValueError(f"{path.name} lists camera {c} twice at time index {t}; keep one image per view")
-        views[t] = frame
-    cameras = sorted(by_camera)
-    if cameras != list(range(len(cameras))):
-        absent = sorted(set(range(max(cameras) + 1)) - set(cameras))
-        raise ValueError(f"cameras missing from {path.name}: {absent} (cameras must be numbered 0..C-1)")
-    counts = {c: len(by_camera[c]) for c in cameras}
-    most = max(counts, key=counts.get)
-    for c in cameras:
-        if counts[c] != counts[most]:
-            raise ValueError(
-                f"mismatched frame counts in {path.name}: camera {c} has {counts[c]} frames but camera {most} has "
-                f"{counts[most]}; every camera needs one image per time index"
-            )
-    times = sorted(set().union(*(set(v) for v in by_camera.values())))
-    for t in times:
-        lacking = [c for c in cameras if t not in by_camera[c]]
-        if lacking:
-            raise ValueError(f"cameras missing in {path.name}: time index {t} lacks camera(s) {lacking}")
-    if times != list(range(len(times))):
-        raise ValueError(f"time indices in {path.name} must be 0..T-1, got {times[:8]}")
-
-    c2w = torch.empty(len(cameras), 4, 4, dtype=torch.float64)
-    for c in cameras:
-        poses = torch.tensor(np.stack([_pose(by_camera[c][t], path) for t in times]))
-        if float((poses - poses[0]).abs().max()) > 1e-9 * max(1.0, float(poses.abs().max())):
-            raise ValueError(f"camera {c} moves between time indices in {path.name}; a CameraRig is static")
-        c2w[c] = poses[0]
-
-    width, height = meta.get("w"), meta.get("h")
-    if width is None or height is None:
-        with _open_image(path, by_camera[0][0]["file_path"], Image) as first:
-            width, height = first.size
-    width, height = int(width), int(height)
-    intrinsics = torch.empty(len(cameras), 4, dtype=torch.float64)
-    for c in cameras:
-        values = torch.tensor(
-            [_intrinsics(meta, by_camera[c][t], width, height, path) for t in times], dtype=torch.float64
-        )
-        changed = (values - values[0]).abs().amax(1) > 1e-9 * values[0].abs().amax().clamp_min(1.0)
-        if bool(changed.any()):
-            k = int(torch.nonzero(changed)[0])
-            raise ValueError(
-                f"camera {c} changes its intrinsics (fl_x, fl_y, cx, cy) between time indices in {path.name}: "
-                f"{values[0].tolist()} at time index {times[0]}, {values[k].tolist()} at {times[k]}; a CameraRig "
-                f"calibrates each camera once, so give every frame of camera {c} the same values"
-            )
-        intrinsics[c] = values[0]
-    rig = CameraRig(c2w, width, height, *intrinsics.unbind(1))
-
-    images = torch.empty(len(times), len(cameras), rig.height, rig.width, 3, dtype=torch.float32)
-    masks = torch.empty(len(times), len(cameras), rig.height, rig.width, dtype=torch.bool)
-    for t in times:
-        for c in cameras:
-            frame = by_camera[c][t]
-            for key, out, mode in (("file_path", images, "RGB"), ("mask_path", masks, "L")):
-                with _open_image(path, frame[key], Image) as image:
-                    if image.size != (rig.width, rig.height):
-                        raise ValueError(
-                            f"{image.filename} (time {t}, camera {c}) is {image.size[0]}x{image.size[1]} pixels but "
-                            f"{path.name} says {rig.width}x{rig.height}; re-render it or fix w/h"
-                        )
-                    pixels = np.asarray(image.convert(mode))
-                if mode == "RGB":
-                    out[t, c] = torch.from_numpy(pixels.astype(np.float32) / 255.0)
-                else:
-                    out[t, c] = torch.from_numpy(pixels >= 128)
-    lighting = meta.get("lighting")
+    findings = Findings(path.parent if path.suffix == ".json" else path, strict=True)
+    index = read_index(path, findings, default_fps=_DEFAULT_FPS)
+    images, masks, _ = read_views(index, findings)
+    lighting = index.meta.get("lighting")
     lighting = None if lighting is None else Lighting.from_dict(lighting)
-    background = tuple(float(x) for x in meta.get("background", (1.0, 1.0, 1.0)))
-    return Capture(images, masks, rig, float(meta.get("fps", 25.0)), lighting, background)
+    background = tuple(float(x) for x in index.meta.get("background", (1.0, 1.0, 1.0)))
+    return Capture(images, masks, index.rig, index.fps, lighting, background)
 
 
 def load_truth(folder: str | Path) -> dict:
@@ -302,52 +214,3 @@ def _encode_truth(truth: dict) -> dict[str, np.ndarray]:
     except TypeError as error:
         raise ValueError(f"truth values must be tensors, arrays or JSON-serialisable values: {error}") from error
     return {**arrays, _JSON_KEY: np.asarray(encoded)}
-
-
-def _open_image(json_path: Path, relative: str, image_module):
-    path = json_path.parent / relative
-    if not path.suffix and not path.is_file():
-        path = path.with_name(path.name + ".png")
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} listed in {json_path.name} does not exist")
-    try:
-        image = image_module.open(path)
-        image.load()
-    except (OSError, SyntaxError, ValueError) as error:
-        raise ValueError(
-            f"{path} listed in {json_path.name} is not a readable image ({error}); re-render it"
-        ) from error
-    return image
-
-
-def _pose(frame: dict, json_path: Path) -> np.ndarray:
-    matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
-    if matrix.shape == (3, 4):
-        matrix = np.vstack([matrix, [0.0, 0.0, 0.0, 1.0]])
-    if matrix.shape != (4, 4) or not np.isfinite(matrix).all():
-        raise ValueError(f"{frame['file_path']} in {json_path.name} needs a finite 4x4 transform_matrix")
-    return matrix
-
-
-def _intrinsics(meta: dict, frame: dict, width: int, height: int, json_path: Path) -> tuple[float, ...]:
-    """``(fx, fy, cx, cy)`` px of one frame: its own values where it gives them, else the top-level ones."""
-    fx = _first(_focal(frame, "x", width), _focal(meta, "x", width))
-    if fx is None:
-        raise ValueError(f"{json_path.name} gives no intrinsics: add 'fl_x' (pixels) or 'camera_angle_x' (radians)")
-    fy = _first(_focal(frame, "y", height), _focal(meta, "y", height), fx)
-    cx = _first(frame.get("cx"), meta.get("cx"), 0.5 * width)
-    cy = _first(frame.get("cy"), meta.get("cy"), 0.5 * height)
-    return fx, fy, float(cx), float(cy)
-
-
-def _first(*values):
-    return next((value for value in values if value is not None), None)
-
-
-def _focal(values: dict, axis: str, size: int) -> float | None:
-    """Focal length along ``axis`` in px from ``fl_{axis}`` or ``camera_angle_{axis}`` of ``values``, or ``None``."""
-    if values.get(f"fl_{axis}") is not None:
-        return float(values[f"fl_{axis}"])
-    if values.get(f"camera_angle_{axis}") is not None:
-        return 0.5 * size / math.tan(0.5 * float(values[f"camera_angle_{axis}"]))
-    return None
