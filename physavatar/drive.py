@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import torch
 
-from physavatar.body import Body, Motion
+from physavatar.body import Body, Motion, attach_to_surface
 from physavatar.cloth import ClothControl
 from physavatar.garment import boundary_targets
 
@@ -86,6 +86,29 @@ class BodyDriver:
             boundary_targets(body, garment_vertices[index], rotations, translation),
             float(motion.fps),
         )
+
+    @staticmethod
+    def from_body_frames(
+        body_frames: torch.Tensor,
+        body_faces: torch.Tensor,
+        garment_vertices: torch.Tensor,
+        boundary_index: torch.Tensor,
+        fps: float,
+    ) -> BodyDriver:
+        """A captured body (one mesh per frame, no skeleton) and the boundary vertices carried by their nearest body
+        triangles (:func:`physavatar.body.attach_to_surface`).
+
+        Args:
+            body_frames: ``[T, B, 3]`` body vertices per frame, m.
+            body_faces: ``[G, 3]`` the body's triangles.
+            garment_vertices: ``[V, 3]`` the garment at frame 0, m.
+            boundary_index: ``[D]`` its Dirichlet vertices.
+            fps: frames per second of the sequence.
+        """
+        index = boundary_index.long().cpu()
+        frames = body_frames.detach().cpu().to(torch.float64)
+        attachment = attach_to_surface(garment_vertices.detach().cpu()[index], frames[0], body_faces)
+        return BodyDriver(frames, index, attachment.positions(frames, body_faces.cpu()), float(fps))
 
     @property
     def frames(self) -> int:

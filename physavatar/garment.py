@@ -20,7 +20,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from physavatar.body import Body, linear_blend_skinning
+from physavatar.body import Body, closest_surface_points, linear_blend_skinning
 
 __all__ = [
     "BOUNDARY_MODES",
@@ -433,7 +433,7 @@ def _signed_distance(x: torch.Tensor, body: Body) -> torch.Tensor:
 
 def select_boundary(
     garment: Garment,
-    body: Body,
+    body: Body | tuple[torch.Tensor, torch.Tensor],
     mode: str = "auto",
     override=None,
     band: float = 5e-3,
@@ -452,7 +452,8 @@ def select_boundary(
 
     Args:
         garment: the placed garment.
-        body: the body in the garment's (rest) pose.
+        body: the body in the garment's (rest) pose: a :class:`Body`, or the ``(vertices [B, 3], faces [G, 3])`` of
+            a captured body's mesh at that frame.
         mode: one of :data:`BOUNDARY_MODES`.
         override: explicit vertex indices (anything ``torch.as_tensor`` takes); replaces the selection.
         band: distance from the waist loop within which vertices join it, m.
@@ -465,6 +466,8 @@ def select_boundary(
         ValueError: an unknown mode, an empty or out-of-range override, or a selection that finds nothing.
     """
     v = garment.vertices.shape[0]
+    body_vertices, body_faces = (body.vertices, body.faces) if isinstance(body, Body) else body
+    body_vertices = body_vertices.detach().cpu().to(torch.float64)
     if override is not None:
         index = torch.as_tensor(override).reshape(-1)
         if index.numel() == 0:
@@ -482,7 +485,7 @@ def select_boundary(
     if loop is not None:
         loop = loop[x[loop, 1] >= x[loop, 1].max() - 0.02]  # the level band at the top of that loop
     if mode == "auto":
-        mode = "waist" if loop is not None and _is_waist(x[loop], body) else "shoulders"
+        mode = "waist" if loop is not None and _is_waist(x[loop], body_vertices) else "shoulders"
     if mode == "waist":
         if loop is None:
             raise ValueError(f"{garment.name}: the mesh has no boundary loop, so no waistband; use mode='shoulders'")
@@ -490,7 +493,7 @@ def select_boundary(
         index = np.flatnonzero(near)
     else:
         top = np.flatnonzero(x[:, 1] >= x[:, 1].max() - shoulder_band)
-        _, distance, _, _ = body.to("cpu", torch.float64).closest_points(torch.from_numpy(x[top]))
+        _, distance, _, _ = closest_surface_points(torch.from_numpy(x[top]), body_vertices, body_faces)
         d = distance.numpy()
         index = top[d <= d.min() + 0.01]
     if index.size == 0:
@@ -511,12 +514,12 @@ def _top_loop(x: np.ndarray, faces: np.ndarray) -> np.ndarray | None:
     return max(loops, key=lambda c: float(x[c, 1].mean()))
 
 
-def _is_waist(ring: np.ndarray, body: Body) -> bool:
+def _is_waist(ring: np.ndarray, body_vertices: torch.Tensor) -> bool:
     """A nearly level loop (height varies by < 2 cm) that surrounds the body's vertical axis at its height."""
     if np.ptp(ring[:, 1]) >= 0.02:
         return False
     y = float(ring[:, 1].mean())
-    near = body.vertices[(body.vertices[:, 1] - y).abs() < 0.02]
+    near = body_vertices[(body_vertices[:, 1] - y).abs() < 0.02]
     if near.shape[0] == 0:
         return False
     axis = near[:, [0, 2]].mean(0).numpy()

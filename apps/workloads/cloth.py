@@ -38,6 +38,12 @@ vertex left out; ``None`` where nothing came within 1 cm) and ``vertices_inside_
 the body's winding number). ``cloth_step``'s also carries ``steps``, ``steps_converged`` (steps that met the Newton
 tolerance with every kinematic vertex on its target) and ``newton_iterations_total`` over every step run.
 
+``rollout_backward``: the adjoint of a 24-frame rollout (:func:`physavatar.cloth.rollout`; 6 frames at smoke size)
+of ``cloth_step``'s skirt on the walk, in the estimation's fabric (:data:`physavatar.fit.estimation.SYNTHETIC_FABRIC`):
+``∂L/∂(ρ, κ_s, κ_b, v₀)`` of ``L = ½ Σ ‖x_t‖²``, one adjoint solve per step. The reference is the forward rollout it
+differentiates, so ``speedup_vs_reference`` is forward over backward time (its inverse is the backward's cost in
+forwards); ``extra`` carries the memory the forward keeps for the backward per frame.
+
 ``cloth_step`` at paper size takes the skirt7271 (3757 vertices) through the walk; its figures on GPU and CPU, and
 what each change to the solver did to them, are on the measurements page ``docs/benchmarks.md``, as are the peer's.
 """
@@ -56,9 +62,19 @@ from kernels.element_terms import ElementTerms
 from kernels.reference import cloth as ref
 from kernels.shell import plane_stress_lame
 from physavatar.body import Body, walk
-from physavatar.cloth import PHASES, ClothConfig, ClothControl, ClothEnergies, SolverCloth, bending_stiffness
+from physavatar.cloth import (
+    PHASES,
+    ClothConfig,
+    ClothControl,
+    ClothEnergies,
+    RolloutScene,
+    SolverCloth,
+    bending_stiffness,
+    rollout,
+)
 from physavatar.cloth.contact import garment_distances
 from physavatar.drive import BodyDriver
+from physavatar.fit.estimation import SYNTHETIC_FABRIC
 from physavatar.garment import SHARED_GARMENTS, load_garment, place_on_body, select_boundary
 from physavatar.shapes import grid_sheet, icosphere
 
@@ -255,6 +271,45 @@ def bench_cloth_step(device: str, size: str) -> Case:
         extra=extra,
         frame_seconds=driver.dt,
         observe=lambda: track(states[0].x, frame[0]),
+    )
+
+
+@workload("rollout_backward", "adjoint of a 24-frame skirt rollout through contact, beside its forward (backward/s)")
+def bench_rollout_backward(device: str, size: str) -> Case:
+    scene = _WalkingSkirt.load("rollout_backward", size)
+    frames = 6 if size == "smoke" else 24
+    dev = backend.torch_device()
+    driver = scene.driver.to(dev)
+    body, targets = driver.body_frames[:frames], driver.boundary_targets[:frames]
+    setting = RolloutScene(
+        scene.x_rest.to(dev), scene.faces.to(dev), scene.body_faces.to(dev), scene.boundary.to(dev), driver.dt,
+        SYNTHETIC_FABRIC,
+    )
+    fabric = SYNTHETIC_FABRIC
+    params = [
+        torch.tensor(value, dtype=torch.float64, device=dev, requires_grad=True)
+        for value in (fabric.density, fabric.kappa_s, fabric.kappa_b)
+    ]
+    velocity = torch.zeros_like(setting.rest_vertices, dtype=torch.float64, requires_grad=True)
+
+    def forward():
+        return rollout(setting, *params, setting.rest_vertices, body, targets, velocity=velocity)
+
+    loss = 0.5 * forward().square().sum()
+    vertices = int(scene.x_rest.shape[0])
+
+    def backward():
+        return torch.autograd.grad(loss, [*params, velocity], retain_graph=True)
+
+    extra = {"forward_frames_bytes_per_frame": 24 * vertices, "frames": frames}
+    return Case(
+        run=backward,
+        reference=forward,
+        params={**scene.params(), "frames": frames, "fabric": "SYNTHETIC_FABRIC"},
+        work=1.0,
+        unit="backward/s",
+        reference_name="the forward rollout it differentiates",
+        extra=extra,
     )
 
 

@@ -32,6 +32,7 @@ from physavatar.body.skeleton import REFERENCE_HEIGHT, Skeleton, linear_blend_sk
 
 __all__ = [
     "Body",
+    "closest_surface_points",
 ]
 
 # --- the body -------------------------------------------------------------------------------------
@@ -118,7 +119,7 @@ class Body:
         return linear_blend_skinning(self.vertices, self.weights, transforms)
 
     def closest_points(self, points: torch.Tensor, vertices: torch.Tensor | None = None):
-        """Closest points on the body surface.
+        """Closest points on the body surface (:func:`closest_surface_points` of the rest or posed mesh).
 
         Args:
             points: [P, 3] query points, metres.
@@ -127,29 +128,7 @@ class Body:
         Returns:
             ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])``, metres for lengths.
         """
-        v = (self.vertices if vertices is None else vertices).detach().cpu().numpy()
-        f = self.faces.cpu().numpy()
-        q = points.detach().cpu().numpy().astype(np.float64)
-        tri = v[f]
-        centroid = tri.mean(axis=1)
-        reach = np.linalg.norm(tri - centroid[:, None], axis=2).max()
-        upper, _ = cKDTree(v).query(q)
-        candidates = cKDTree(centroid).query_ball_point(q, upper + reach)
-        point_index = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
-        face_index = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
-        on_face = trimesh.triangles.closest_point(tri[face_index], q[point_index])
-        squared = ((on_face - q[point_index]) ** 2).sum(1)
-        order = np.lexsort((squared, point_index))  # per point, its nearest candidate first
-        first = order[np.searchsorted(point_index[order], np.arange(len(q)))]
-        closest, face = on_face[first], face_index[first]
-        bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
-        out = torch.as_tensor(closest, dtype=points.dtype, device=points.device)
-        return (
-            out,
-            torch.linalg.vector_norm(out - points, dim=1),
-            torch.as_tensor(face, device=points.device),
-            torch.as_tensor(bary, dtype=points.dtype, device=points.device),
-        )
+        return closest_surface_points(points, self.vertices if vertices is None else vertices, self.faces)
 
     def winding_number(self, points: torch.Tensor, vertices: torch.Tensor | None = None) -> torch.Tensor:
         """Generalised winding number [P] of the closed surface at ``points`` [P, 3]: 1 inside, 0 outside.
@@ -186,3 +165,43 @@ class Body:
         corner_weights = self.weights[self.faces[face.to(self.faces.device)]]  # [P, 3, J]
         w = (bary.to(corner_weights).unsqueeze(-1) * corner_weights).sum(1).clamp_min(0.0)
         return w / w.sum(1, keepdim=True)
+
+
+def closest_surface_points(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor):
+    """Closest points on a triangle mesh (any mesh: open, closed or intersecting itself).
+
+    Candidate triangles come from a k-d tree of their centroids within the nearest vertex's distance plus the
+    largest triangle's reach, so the answer is exact, not approximate.
+
+    Args:
+        points: ``[P, 3]`` query points, m.
+        vertices: ``[V, 3]`` mesh vertices, m.
+        faces: ``[F, 3]`` triangles.
+
+    Returns:
+        ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])`` on the device and in the dtype of
+        ``points``, metres for lengths.
+    """
+    v = vertices.detach().cpu().numpy().astype(np.float64)
+    f = faces.cpu().numpy()
+    q = points.detach().cpu().numpy().astype(np.float64)
+    tri = v[f]
+    centroid = tri.mean(axis=1)
+    reach = np.linalg.norm(tri - centroid[:, None], axis=2).max()
+    upper, _ = cKDTree(v).query(q)
+    candidates = cKDTree(centroid).query_ball_point(q, upper + reach)
+    point_index = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
+    face_index = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
+    on_face = trimesh.triangles.closest_point(tri[face_index], q[point_index])
+    squared = ((on_face - q[point_index]) ** 2).sum(1)
+    order = np.lexsort((squared, point_index))  # per point, its nearest candidate first
+    first = order[np.searchsorted(point_index[order], np.arange(len(q)))]
+    closest, face = on_face[first], face_index[first]
+    bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
+    out = torch.as_tensor(closest, dtype=points.dtype, device=points.device)
+    return (
+        out,
+        torch.linalg.vector_norm(out - points, dim=1),
+        torch.as_tensor(face, device=points.device),
+        torch.as_tensor(bary, dtype=points.dtype, device=points.device),
+    )
