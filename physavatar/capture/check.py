@@ -14,9 +14,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from physavatar.body import closest_surface_points
 from physavatar.capture.layout import (
     TRANSFORMS,
     UP_AXES,
@@ -234,8 +236,10 @@ def _check_scene(
             f"check the up axis: a standing body is tallest along it ({fix})",
         )
     distance, inside = _surface_distance(body, body_faces, vertices)
-    nearest = float(distance.min())
-    rows["garment to body"] = f"nearest vertex {nearest * 1e3:.1f} mm from the body surface at time index 0"
+    closest = int(np.argmin(distance))
+    nearest = float(distance[closest])
+    side = "inside" if inside[closest] else "outside"
+    rows["garment to body"] = f"nearest vertex {nearest * 1e3:.1f} mm {side} the body surface at time index 0"
     if nearest > MAX_GAP:
         findings.problem(
             garment_where,
@@ -291,38 +295,28 @@ def _check_cameras(index: CaptureIndex, garment: Garment, findings: Findings, ro
 def _surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance ``[P]`` (m) from each point to a closed triangle surface and whether it lies inside (``[P]`` bool).
 
-    The closest point among the triangles near each point (those whose centroid lies within the nearest vertex's
-    distance plus the largest triangle's reach); inside where the point lies behind the surface normal there,
-    interpolated from the vertex normals (exact in sign near a smooth closed surface). Points certainly farther
-    than ``_EXACT_REACH`` from the surface get their nearest vertex's distance (an upper bound) and count as
-    outside.
+    Exact closest points (:func:`~physavatar.body.closest_surface_points`), in batches; inside where the point lies
+    behind the surface normal there, interpolated from the vertex normals (exact in sign near a smooth closed
+    surface). Points certainly farther than ``_EXACT_REACH`` from the surface get their nearest vertex's distance
+    (an upper bound) and count as outside: their candidate triangles would be most of the mesh.
     """
     mesh = trimesh.Trimesh(vertices, faces, process=False)
     normals = np.asarray(mesh.vertex_normals)
     if mesh.is_watertight and mesh.volume < 0.0:  # inward-wound: its normals point in
         normals = -normals
     tri = vertices[faces]
-    centroid = tri.mean(1)
-    reach = float(np.linalg.norm(tri - centroid[:, None], axis=2).max())
+    reach = float(np.linalg.norm(tri - tri.mean(1, keepdims=True), axis=2).max())
     upper, _ = cKDTree(vertices).query(points)
-    centroids = cKDTree(centroid)
     distance, inside = upper.copy(), np.zeros(len(points), dtype=bool)
     near = np.flatnonzero(upper - 2.0 * reach <= _EXACT_REACH)  # a triangle's points lie within 2·reach of a corner
+    body_vertices, body_faces = torch.from_numpy(vertices), torch.from_numpy(faces)
     for start in range(0, len(near), _CHUNK):
         rows = near[start : start + _CHUNK]
-        q = points[rows]
-        candidates = centroids.query_ball_point(q, upper[rows] + reach)
-        point = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
-        face = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
-        on_face = trimesh.triangles.closest_point(tri[face], q[point])
-        squared = ((on_face - q[point]) ** 2).sum(1)
-        order = np.lexsort((squared, point))
-        first = order[np.searchsorted(point[order], np.arange(len(q)))]
-        closest, face = on_face[first], face[first]
-        bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
-        normal = (bary[:, :, None] * normals[faces[face]]).sum(1)
-        distance[rows] = np.linalg.norm(q - closest, axis=1)
-        inside[rows] = ((q - closest) * normal).sum(1) < 0.0
+        q = torch.from_numpy(points[rows])
+        closest, gap, face, bary = closest_surface_points(q, body_vertices, body_faces)
+        normal = (bary[:, :, None].numpy() * normals[faces[face.numpy()]]).sum(1)
+        distance[rows] = gap.numpy()
+        inside[rows] = ((q - closest).numpy() * normal).sum(1) < 0.0
     return distance, inside
 
 

@@ -53,7 +53,11 @@ def test_a_sound_capture_passes_with_its_summary(good):
     assert (
         summary["inside the body"] == "0 of 36 vertices" and summary["cameras seeing it"] == f"{CAMERAS} of {CAMERAS}"
     )
-    gap = float(re.search(r"nearest vertex ([\d.]+) mm", summary["garment to body"]).group(1))
+    gap = float(
+        re.fullmatch(
+            r"nearest vertex ([\d.]+) mm outside the body surface at time index 0", summary["garment to body"]
+        ).group(1)
+    )
     assert 45.0 < gap <= 50.0  # 5 cm from the tube to the capsule's vertices, at most that to its facets
     text = check.format()
     assert text.splitlines()[0] == f"capture {good}: ok"
@@ -317,3 +321,21 @@ def test_the_documented_example_is_a_capture_that_passes(tmp_path):
     loaded = load_capture_folder(folder)
     assert loaded.film.images.shape == (2, 2, 480, 640, 3) and loaded.boundary is None and loaded.up == "z"
     assert loaded.film.rig.intrinsics[1].tolist() == [612.5, 611.8, 318.2, 243.1]
+
+
+def test_a_capture_built_elsewhere_passes_with_its_pushed_patch_reported(handmade):
+    """The hand-made capture (another builder of the same format): z-up, scattered cameras, one calibrated apart,
+    its body's arm in its chest, a garment patch 3-5 mm inside the body. Only the patch is worth a warning."""
+    folder, built = handmade
+    check = check_capture(folder)
+    assert check.ok, check.format()
+    summary = dict(check.summary)
+    frames, faces = built["body_frames"].shape[:2], len(built["body_faces"])
+    assert summary["body"] == f"{frames[0]} meshes, {frames[1]} vertices, {faces} faces"
+    assert summary["boundary"] == f"given: {len(np.unique(built['boundary']))} vertices (boundary.txt)"
+    assert summary["cameras seeing it"] == f"{built['cameras']} of {built['cameras']}"
+    count, depth = re.fullmatch(r"(\d+) of \d+ vertices, up to ([\d.]+) mm deep", summary["inside the body"]).groups()
+    assert int(count) == len(built["pushed"])
+    # the files hold 6 decimals (±0.5 µm) and the row one decimal of a millimetre (±0.05 mm)
+    assert abs(float(depth) - 1e3 * built["push_depth"].max()) <= 0.05 + 1e-3
+    assert [w.where for w in check.warnings] == ["garment.obj"] and "start inside the body" in check.warnings[0].what

@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from physavatar.capture import CameraRig, CaptureFolder, load_capture_folder
 from tests.physavatar.capture.handmade import (
@@ -24,6 +25,7 @@ from tests.physavatar.capture.handmade import (
     write_capture_folder,
     write_obj,
 )
+from tests.physavatar.handmade_capture import Y_UP_FROM_Z_UP
 
 
 def test_a_y_up_folder_loads_as_written(tmp_path):
@@ -163,3 +165,32 @@ def test_the_loader_names_the_first_problem_and_its_fix(tmp_path, damage, error,
 def test_the_json_written_by_hand_is_plain_json(tmp_path):
     meta = write_capture_folder(tmp_path / "cap")
     assert json.loads((tmp_path / "cap" / "transforms.json").read_text()) == meta
+
+
+def test_a_capture_built_elsewhere_loads_turned_to_y_up(handmade):
+    """The hand-made capture (another builder of the same format, z-up, 6-decimal OBJ files): meshes, boundary,
+    masks and cameras come back in y-up axes, each garment vertex on the pixel the file's cameras put it."""
+    folder, built = handmade
+    loaded = load_capture_folder(folder)
+    assert loaded.up == "z" and loaded.film.fps == built["fps"]
+    turn = Y_UP_FROM_Z_UP.T  # row vectors: p_y = p_z @ turn
+    files = 0.5e-6 + 1e-15 * 2.0  # m: 6 decimals, plus the rounding of a coordinate within 2 m
+    np.testing.assert_allclose(loaded.body_frames.numpy(), built["body_frames"] @ turn, rtol=0.0, atol=files)
+    np.testing.assert_allclose(loaded.garment_vertices.numpy(), built["template"] @ turn, rtol=0.0, atol=files)
+    assert np.array_equal(loaded.body_faces.numpy(), built["body_faces"])
+    assert np.array_equal(loaded.garment_faces.numpy(), built["garment_faces"])
+    assert np.array_equal(loaded.boundary.numpy(), np.unique(built["boundary"]))  # no weld: the file's own indices
+    for c, camera in enumerate(built["camera_list"]):
+        assert loaded.film.rig.intrinsics[c].tolist() == [camera[k] for k in ("fl_x", "fl_y", "cx", "cy")]
+        for t in range(built["frames"]):
+            mask = np.asarray(Image.open(folder / "masks" / f"cam{c}_t{t}.png").convert("L")) >= 128
+            assert np.array_equal(loaded.film.masks[t, c].numpy(), mask)
+    file_rig = CameraRig(
+        torch.from_numpy(np.stack([camera["c2w"] for camera in built["camera_list"]])),
+        *built["size"],
+        *loaded.film.rig.intrinsics.unbind(1),
+    )
+    points = torch.from_numpy(built["template"])
+    before, _ = file_rig.project(points)
+    after, _ = loaded.film.rig.project(loaded.from_capture_axes(points))
+    torch.testing.assert_close(after, before, rtol=0.0, atol=1e-9)  # px: inverses of two exact turns of one matrix
