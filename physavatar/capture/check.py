@@ -121,11 +121,11 @@ def check_capture(path: str | Path) -> CaptureCheck:
     if folder.is_dir():
         paths = body_paths(folder, meta, None if index is None else len(index.times) or None, findings)
         body = None if paths is None else read_body(folder, paths, findings)
-        body_where = "body/" if paths is None else paths[0].relative_to(folder).as_posix()
+        body_where = "body/" if paths is None else _relative(folder, paths[0])
         garment_file = garment_path(folder, meta, findings)
         if garment_file is not None:
             garment = read_garment(folder, garment_file, findings)
-            garment_where = garment_file.relative_to(folder).as_posix()
+            garment_where = _relative(folder, garment_file)
         boundary_file = boundary_path(folder, meta, findings)
         if boundary_file is None:
             rows["boundary"] = "automatic (no boundary.txt: the pipeline chooses the vertices and writes them out)"
@@ -318,6 +318,11 @@ def _surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
         distance[rows] = gap.numpy()
         inside[rows] = ((q - closest).numpy() * normal).sum(1) < 0.0
     return distance, inside
+
+
+def _relative(folder: Path, path: Path) -> str:
+    """``path`` as the problems name it: relative to the capture folder where it lies inside."""
+    return path.relative_to(folder).as_posix() if path.is_relative_to(folder) else str(path)
 
 
 def _list(values: list[int]) -> str:

@@ -157,6 +157,11 @@ DEFECTS = {
         "problem",
         r"^body/0007\.obj: .*does not exist",
     ),
+    "body listed outside the folder": (
+        lambda f: edit_json(f, lambda m: m.update(body=[f"/nowhere/{t}.obj" for t in range(FRAMES)])),
+        "problem",
+        r"^/nowhere/0\.obj: /nowhere/0\.obj does not exist",
+    ),
     "no body folder": (lambda f: shutil.rmtree(f / "body"), "problem", r"^body/: .*does not exist"),
     "missing garment": (lambda f: (f / "garment.obj").unlink(), "problem", r"^garment\.obj: .*does not exist"),
     "body meshes not T": (
