@@ -6,12 +6,13 @@ SMPL-X is not freely licensed, so this package builds a procedural mannequin in 
 - :mod:`~physavatar.body.skeleton`: the 22 SMPL joints, their rest pose, and linear blend skinning;
 - :mod:`~physavatar.body.mannequin`: the skin's signed distance field, its marching-tetrahedra mesh and its
   skinning weights;
-- :mod:`~physavatar.body.body`: :class:`Body`, the skinned, closed collider mesh;
+- :mod:`~physavatar.body.body`: :class:`Body`, the skinned, closed collider mesh, and the closest points of a mesh's
+  surface;
 - :mod:`~physavatar.body.motion`: procedural motions (walk, turn, raise arms, jump);
 - :mod:`~physavatar.body.bvh`: BVH motion files, read and written.
 """
 
-from physavatar.body.body import Body
+from physavatar.body.body import Body, surface_closest_points
 from physavatar.body.bvh import BVH_NAME_MAPS, MAX_BVH_FRAMES, REQUIRED_JOINTS, load_bvh, save_bvh
 from physavatar.body.mannequin import bone_distances, mannequin_mesh, skinning_weights
 from physavatar.body.motion import MOTIONS, Motion, jump, named_motion, raise_arms, turn, walk
@@ -47,6 +48,7 @@ __all__ = [
     "raise_arms",
     "save_bvh",
     "skinning_weights",
+    "surface_closest_points",
     "turn",
     "walk",
 ]

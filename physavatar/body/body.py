@@ -32,6 +32,7 @@ from physavatar.body.skeleton import REFERENCE_HEIGHT, Skeleton, linear_blend_sk
 
 __all__ = [
     "Body",
+    "surface_closest_points",
 ]
 
 # --- the body -------------------------------------------------------------------------------------
@@ -118,7 +119,7 @@ class Body:
         return linear_blend_skinning(self.vertices, self.weights, transforms)
 
     def closest_points(self, points: torch.Tensor, vertices: torch.Tensor | None = None):
-        """Closest points on the body surface.
+        """Closest points on the body surface (:func:`surface_closest_points` of this mesh).
 
         Args:
             points: [P, 3] query points, metres.
@@ -127,29 +128,7 @@ class Body:
         Returns:
             ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])``, metres for lengths.
         """
-        v = (self.vertices if vertices is None else vertices).detach().cpu().numpy()
-        f = self.faces.cpu().numpy()
-        q = points.detach().cpu().numpy().astype(np.float64)
-        tri = v[f]
-        centroid = tri.mean(axis=1)
-        reach = np.linalg.norm(tri - centroid[:, None], axis=2).max()
-        upper, _ = cKDTree(v).query(q)
-        candidates = cKDTree(centroid).query_ball_point(q, upper + reach)
-        point_index = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
-        face_index = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
-        on_face = trimesh.triangles.closest_point(tri[face_index], q[point_index])
-        squared = ((on_face - q[point_index]) ** 2).sum(1)
-        order = np.lexsort((squared, point_index))  # per point, its nearest candidate first
-        first = order[np.searchsorted(point_index[order], np.arange(len(q)))]
-        closest, face = on_face[first], face_index[first]
-        bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
-        out = torch.as_tensor(closest, dtype=points.dtype, device=points.device)
-        return (
-            out,
-            torch.linalg.vector_norm(out - points, dim=1),
-            torch.as_tensor(face, device=points.device),
-            torch.as_tensor(bary, dtype=points.dtype, device=points.device),
-        )
+        return surface_closest_points(self.vertices if vertices is None else vertices, self.faces, points)
 
     def winding_number(self, points: torch.Tensor, vertices: torch.Tensor | None = None) -> torch.Tensor:
         """Generalised winding number [P] of the closed surface at ``points`` [P, 3]: 1 inside, 0 outside.
@@ -186,3 +165,48 @@ class Body:
         corner_weights = self.weights[self.faces[face.to(self.faces.device)]]  # [P, 3, J]
         w = (bary.to(corner_weights).unsqueeze(-1) * corner_weights).sum(1).clamp_min(0.0)
         return w / w.sum(1, keepdim=True)
+
+
+# --- surface queries of any triangle mesh --------------------------------------------------------------------
+
+
+def surface_closest_points(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Tensor):
+    """Closest points of a triangle mesh's surface to query points, exact in float64.
+
+    The distance to a point's nearest mesh vertex bounds its distance to the surface from above, and every point of
+    a triangle lies within the triangle's largest centroid–corner distance of its centroid; so the triangles whose
+    centroids lie within the sum of the two hold the closest point, and only those are measured (a k-d tree finds
+    them). Vertices that no face uses are left out of the bound.
+
+    Args:
+        vertices: [V, 3] mesh vertices, metres.
+        faces: [F, 3] vertex indices, F ≥ 1.
+        points: [P, 3] query points, metres.
+
+    Returns:
+        ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])``, metres for lengths, in the dtype and on the
+        device of ``points`` (``face`` int64 indexes ``faces``).
+    """
+    v = vertices.detach().cpu().numpy()
+    f = faces.cpu().numpy()
+    q = points.detach().cpu().numpy().astype(np.float64)
+    tri = v[f]
+    centroid = tri.mean(axis=1)
+    reach = np.linalg.norm(tri - centroid[:, None], axis=2).max()
+    upper, _ = cKDTree(v[np.unique(f)]).query(q)
+    candidates = cKDTree(centroid).query_ball_point(q, upper + reach)
+    point_index = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
+    face_index = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
+    on_face = trimesh.triangles.closest_point(tri[face_index], q[point_index])
+    squared = ((on_face - q[point_index]) ** 2).sum(1)
+    order = np.lexsort((squared, point_index))  # per point, its nearest candidate first
+    first = order[np.searchsorted(point_index[order], np.arange(len(q)))]
+    closest, face = on_face[first], face_index[first]
+    bary = trimesh.triangles.points_to_barycentric(tri[face], closest)
+    out = torch.as_tensor(closest, dtype=points.dtype, device=points.device)
+    return (
+        out,
+        torch.linalg.vector_norm(out - points, dim=1),
+        torch.as_tensor(face, device=points.device),
+        torch.as_tensor(bary, dtype=points.dtype, device=points.device),
+    )
