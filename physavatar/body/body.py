@@ -32,7 +32,7 @@ from physavatar.body.skeleton import REFERENCE_HEIGHT, Skeleton, linear_blend_sk
 
 __all__ = [
     "Body",
-    "closest_surface_points",
+    "surface_closest_points",
 ]
 
 # --- the body -------------------------------------------------------------------------------------
@@ -119,7 +119,7 @@ class Body:
         return linear_blend_skinning(self.vertices, self.weights, transforms)
 
     def closest_points(self, points: torch.Tensor, vertices: torch.Tensor | None = None):
-        """Closest points on the body surface (:func:`closest_surface_points` of the rest or posed mesh).
+        """Closest points on the body surface (:func:`surface_closest_points` of this mesh).
 
         Args:
             points: [P, 3] query points, metres.
@@ -128,7 +128,7 @@ class Body:
         Returns:
             ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])``, metres for lengths.
         """
-        return closest_surface_points(points, self.vertices if vertices is None else vertices, self.faces)
+        return surface_closest_points(self.vertices if vertices is None else vertices, self.faces, points)
 
     def winding_number(self, points: torch.Tensor, vertices: torch.Tensor | None = None) -> torch.Tensor:
         """Generalised winding number [P] of the closed surface at ``points`` [P, 3]: 1 inside, 0 outside.
@@ -167,28 +167,33 @@ class Body:
         return w / w.sum(1, keepdim=True)
 
 
-def closest_surface_points(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor):
-    """Closest points on a triangle mesh (any mesh: open, closed or intersecting itself).
+# --- surface queries of any triangle mesh --------------------------------------------------------------------
 
-    Candidate triangles come from a k-d tree of their centroids within the nearest vertex's distance plus the
-    largest triangle's reach, so the answer is exact, not approximate.
+
+def surface_closest_points(vertices: torch.Tensor, faces: torch.Tensor, points: torch.Tensor):
+    """Closest points of a triangle mesh's surface to query points, exact in float64.
+
+    The distance to a point's nearest mesh vertex bounds its distance to the surface from above, and every point of
+    a triangle lies within the triangle's largest centroid–corner distance of its centroid; so the triangles whose
+    centroids lie within the sum of the two hold the closest point, and only those are measured (a k-d tree finds
+    them). Vertices that no face uses are left out of the bound.
 
     Args:
-        points: ``[P, 3]`` query points, m.
-        vertices: ``[V, 3]`` mesh vertices, m.
-        faces: ``[F, 3]`` triangles.
+        vertices: [V, 3] mesh vertices, metres.
+        faces: [F, 3] vertex indices, F ≥ 1.
+        points: [P, 3] query points, metres.
 
     Returns:
-        ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])`` on the device and in the dtype of
-        ``points``, metres for lengths.
+        ``(closest [P, 3], distance [P], face [P], barycentric [P, 3])``, metres for lengths, in the dtype and on the
+        device of ``points`` (``face`` int64 indexes ``faces``).
     """
-    v = vertices.detach().cpu().numpy().astype(np.float64)
+    v = vertices.detach().cpu().numpy()
     f = faces.cpu().numpy()
     q = points.detach().cpu().numpy().astype(np.float64)
     tri = v[f]
     centroid = tri.mean(axis=1)
     reach = np.linalg.norm(tri - centroid[:, None], axis=2).max()
-    upper, _ = cKDTree(v).query(q)
+    upper, _ = cKDTree(v[np.unique(f)]).query(q)
     candidates = cKDTree(centroid).query_ball_point(q, upper + reach)
     point_index = np.repeat(np.arange(len(q)), [len(c) for c in candidates])
     face_index = np.concatenate([np.asarray(c, dtype=np.int64) for c in candidates])
