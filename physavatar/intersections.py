@@ -17,9 +17,10 @@ the 23k triangles of the mannequin took 3.6 s on one CPU core, where the hierarc
 The body's own intersections. Where the body intersects itself, part of its surface lies inside another part. A
 vertex outside the body is nearest to the outer surface anyway (the segment to a point inside another part would
 cross that part's surface first), but a vertex inside may be nearest to such a buried triangle, whose outward
-normal leads further in. So a vertex inside the body moves to the closest point of the outer surface only: the
-triangles with no corner on a buried one, where a triangle is buried when a point just off it along its outward
-normal lies inside the body.
+normal leads further in. So a vertex inside the body moves to the closest point of the triangles that are not
+buried, a triangle being buried when a point just off it along its outward normal lies inside the body; where that
+point lies on the buried part of a triangle crossing into another part (its move would end inside), to the closest
+point of the triangles with no corner on a buried one.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from kernels import backend
 from kernels.raycast import MeshBVH
 from physavatar.body import surface_closest_points
 
-__all__ = ["IntersectionReport", "resolve_intersections"]
+__all__ = ["RELAX_PASSES", "RELAX_RINGS", "IntersectionReport", "resolve_intersections"]
 
 RELAX_RINGS = 2
 """Edge rings around the moved vertices whose vertices follow the moves (:func:`resolve_intersections`)."""
@@ -364,8 +365,8 @@ def _push_out(x: np.ndarray, active: np.ndarray, body: _BodySurface, gap: float,
 
     A vertex offending again after a move sits where the surface folds back on itself (a crease between two body
     parts): moving it into the new half-space alone can leave the last one, and alternating between the two closes
-    in on their common corner only geometrically (by 15× a round between the spheres of the tests, by far less in a
-    narrow groove between the thighs). So it moves to the nearest point of both half-spaces where the new one alone
+    in on their common corner only geometrically (by 15× a round in the crease of the tests' two spheres, and the
+    slower the narrower the crease). So it moves to the nearest point of both half-spaces where the new one alone
     would leave the last."""
     pushed = np.zeros(x.shape[0], dtype=bool)
     last_c, last_n = np.zeros_like(x), np.zeros_like(x)
