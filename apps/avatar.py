@@ -6,6 +6,9 @@
     python -m apps.avatar pipeline --out out/avatar [--smoke] [--device cuda]
     python -m apps.avatar capture|track|estimate|appearance|animate|evaluate --out out/avatar [--smoke]
     python -m apps.avatar check CAPTURE
+    python -m apps.avatar pipeline --capture my_capture --out out/mine [--smoke] [--device cuda]
+    python -m apps.avatar prepare|track|estimate|appearance|animate|evaluate --capture my_capture --out out/mine
+    python -m apps.avatar export-capture --out out/avatar --to my_capture [--push-depth-mm 3] [--up z]
 
 ``simulate`` dresses the procedural mannequin (:class:`physavatar.body.Body`) in a garment (default: the
 DiffCloth skirt ``skirt1252.obj`` from the shared data folder, or the embedded procedural skirt where that folder
@@ -19,8 +22,11 @@ from its height is wrong. The summary line and ``stats.json`` count the steps wh
 physics it knows, tracks it with mesh-aligned Gaussians, estimates its stiffness and appearance, animates it under
 an unseen motion and writes the Table-2-style report ``evaluate/report.md`` (+ JSON and plots). The stage commands
 run one stage each, reading the earlier stages' folders under ``--out``; pass ``--smoke`` to all or to none.
-``estimate --exact`` fits the true meshes instead of the tracked ones. Bad input prints one line and exits with
-status 2.
+``estimate --exact`` fits the true meshes instead of the tracked ones. With ``--capture DIR`` the stages run on a
+user's own capture folder (``docs/capture.md``; :mod:`physavatar.pipeline.user_capture`): ``prepare`` resolves the
+garment's intersections with the body and chooses the boundary, and ``evaluate`` scores renders in cameras held out
+of the fit, as no truth exists; ``track`` runs ``prepare`` first when its folder is missing. Bad input prints one
+line and exits with status 2.
 
 ``check`` validates a researcher's capture folder (``docs/capture.md``) before any heavy work
 (:func:`physavatar.capture.check_capture`): it prints a summary table when the capture is usable (exit status 0,
@@ -94,18 +100,45 @@ def _parser() -> argparse.ArgumentParser:
     stages = {
         "pipeline": "every stage below, in order, with one progress display",
         "capture": "simulate the true skirt under the fitting motion and film it",
+        "prepare": "with --capture: resolve the garment's intersections with the body, choose the boundary",
         "track": "track the garment through the capture with mesh-aligned Gaussians",
         "estimate": "fit the membrane and bending stiffness to the tracked meshes",
         "appearance": "recover the garment's albedo and the light",
         "animate": "simulate the garment under an unseen motion with each method's parameters",
         "evaluate": "score every method against the truth: report.md, report.json, plots",
     }
+    export = commands.add_parser(
+        "export-capture", help="write the synthetic experiment's capture as a capture folder of your own kind"
+    )
+    export.add_argument("--out", type=Path, required=True, help="experiment folder whose capture stage has run")
+    export.add_argument("--to", type=Path, required=True, help="the capture folder to write")
+    export.add_argument("--push-depth-mm", type=float, default=3.0, help="depth of the pushed vertices in the body")
+    export.add_argument("--push-fraction", type=float, default=0.05, help="fraction of garment vertices pushed in")
+    export.add_argument("--up", choices=("y", "z"), default="z", help="world up axis of the written folder")
     for name, text in stages.items():
         stage = commands.add_parser(name, help=text)
         stage.add_argument("--out", type=Path, required=True, help="experiment folder (one subfolder per stage)")
         stage.add_argument("--device", choices=backend.DEVICES, default=None, help="default: cuda when present")
         stage.add_argument("--smoke", action="store_true", help="tiny sizes: a few frames, 4 views of 64 px")
         stage.add_argument("--frames", type=int, default=None, help="captured frames (default 24, the paper's)")
+        if name not in ("capture",):
+            stage.add_argument(
+                "--capture",
+                type=Path,
+                default=None,
+                metavar="DIR",
+                help="a capture folder of your own (docs/capture.md) instead of the synthetic experiment",
+            )
+        if name in ("prepare", "pipeline", "track"):
+            stage.add_argument(
+                "--held-out-cameras",
+                type=int,
+                nargs="*",
+                default=None,
+                metavar="C",
+                help="with --capture: cameras kept out of the fit for the evaluation (default: the last of three or "
+                "more; none: no camera)",
+            )
         if name in ("estimate", "pipeline"):
             stage.add_argument(
                 "--fd-iterations",
@@ -298,16 +331,16 @@ def _recording(written: list[Path]) -> Staging:
     return staging
 
 
-def _kept_stages(out: Path, written: list[Path]) -> str:
+def _kept_stages(out: Path, written: list[Path], outputs: dict[str, tuple[str, ...]] = pipeline.OUTPUTS) -> str:
     """What a stage command stopped part way kept: the stages it finished whole, then the files of an unfinished one
     (a folder's frames counted, not listed). No file is ever left half-written."""
     if not written:
         return f"nothing written to {out}; no file was left half-written"
     done = [path.relative_to(out).as_posix() for path in written]
     parts = []
-    for stage in pipeline.STAGES:
+    for stage, names in outputs.items():
         files = [name for name in done if name.startswith(f"{stage}/")]
-        whole = all(name in done for name in pipeline.OUTPUTS[stage] if not name.endswith("/"))
+        whole = all(name in done for name in names if not name.endswith("/"))
         if whole:
             parts.append(f"{stage}/ (whole)")
             continue
@@ -319,10 +352,53 @@ def _kept_stages(out: Path, written: list[Path]) -> str:
     return f"kept in {out}: {', '.join(parts)}; no file was left half-written"
 
 
+def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
+    """The function the command runs: ``stage(config, out, progress, staging=...)``."""
+    exact = getattr(args, "exact", False)
+    if args.capture is None:
+        return {
+            "pipeline": pipeline.run,
+            "capture": pipeline.capture,
+            "track": pipeline.track_stage,
+            "estimate": functools.partial(pipeline.estimate, exact=exact),
+            "appearance": pipeline.appearance,
+            "animate": pipeline.animate,
+            "evaluate": pipeline.evaluate,
+        }[args.command]
+    capture, held_out = args.capture, getattr(args, "held_out_cameras", None)
+    held_out = None if held_out is None else tuple(held_out)
+
+    def track_prepared(config, out, progress, staging):
+        if not (Path(out) / "prepare" / "prepare.json").is_file():
+            progress("track", f"{Path(out) / 'prepare'} is missing: preparing the capture first")
+            pipeline.prepare(config, out, progress, staging, capture=capture, held_out_cameras=held_out)
+        return pipeline.track_stage(config, out, progress, staging, capture=capture)
+
+    return {
+        "pipeline": functools.partial(pipeline.run_capture, capture=capture, held_out_cameras=held_out),
+        "prepare": functools.partial(pipeline.prepare, capture=capture, held_out_cameras=held_out),
+        "track": track_prepared,
+        "estimate": functools.partial(pipeline.estimate, exact=exact, capture=capture),
+        "appearance": functools.partial(pipeline.appearance, capture=capture),
+        "animate": functools.partial(pipeline.animate_capture, capture=capture),
+        "evaluate": functools.partial(pipeline.evaluate_capture, capture=capture),
+    }[args.command]
+
+
 def stage_command(args: argparse.Namespace) -> int:
     check_output_folder(args.out)
-    stages = pipeline.STAGES if args.command == "pipeline" else (args.command,)
-    _check_results_in_the_way(args.out, [name for stage in stages for name in pipeline.OUTPUTS[stage]])
+    args.capture = getattr(args, "capture", None)
+    if args.command == "prepare" and args.capture is None:
+        raise ValueError("prepare readies a capture of your own: pass --capture DIR (see docs/capture.md)")
+    if args.capture is not None and not args.capture.is_dir():
+        raise FileNotFoundError(f"--capture {args.capture} is not a folder; pass a capture folder (docs/capture.md)")
+    own = args.capture is not None
+    stage_names = pipeline.CAPTURE_STAGES if own else pipeline.STAGES
+    outputs = pipeline.CAPTURE_OUTPUTS if own else pipeline.OUTPUTS
+    stages = stage_names if args.command == "pipeline" else (args.command,)
+    if args.command == "track" and args.capture is not None and not (args.out / "prepare" / "prepare.json").is_file():
+        stages = ("prepare", "track")
+    _check_results_in_the_way(args.out, [name for stage in stages for name in outputs[stage]])
     config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
     if args.frames is not None and args.frames > MAX_FRAMES:
         raise ValueError(f"--frames must be at most {MAX_FRAMES}, got {args.frames}")
@@ -340,35 +416,29 @@ def stage_command(args: argparse.Namespace) -> int:
     if changes:
         config = dataclasses.replace(config, tracking=dataclasses.replace(config.tracking, **changes))  # range checks
     backend.init(args.device)
-    stage = {
-        "pipeline": pipeline.run,
-        "capture": pipeline.capture,
-        "track": pipeline.track_stage,
-        "estimate": functools.partial(pipeline.estimate, exact=getattr(args, "exact", False)),
-        "appearance": pipeline.appearance,
-        "animate": pipeline.animate,
-        "evaluate": pipeline.evaluate,
-    }[args.command]
+    stage = _stage(args, config)
     written: list[Path] = []
     try:
         print(f"wrote {stage(config, args.out, pipeline.stderr_progress, staging=_recording(written))}")
     except pipeline.PipelineInterrupted as stop:
         again = f"python -m apps.avatar {stop.stage} --out {args.out}" + (" --smoke" if args.smoke else "")
+        again += f" --capture {args.capture}" if args.capture is not None else ""
+        kept = _kept_stages(args.out, written, outputs)
         print(
-            f"{stop} (Ctrl-C); {_kept_stages(args.out, written)}; to go on, run {again} and the stages after it",
+            f"{stop} (Ctrl-C); {kept}; to go on, run {again} and the stages after it",
             file=sys.stderr,
         )
         return 130
     except KeyboardInterrupt:
         print(
-            f"interrupted: the {args.command} stage stopped (Ctrl-C); {_kept_stages(args.out, written)}",
+            f"interrupted: the {args.command} stage stopped (Ctrl-C); {_kept_stages(args.out, written, outputs)}",
             file=sys.stderr,
         )
         return 130
     except FileNotFoundError:
         raise  # an earlier stage's file is missing: named by the stage, exit status 2
     except OSError as error:
-        print(f"error: {args.command} failed ({error}); {_kept_stages(args.out, written)}", file=sys.stderr)
+        print(f"error: {args.command} failed ({error}); {_kept_stages(args.out, written, outputs)}", file=sys.stderr)
         return 1
     return 0
 
@@ -380,6 +450,15 @@ def check_command(args: argparse.Namespace) -> int:
     return 0 if report.ok else 2
 
 
+def export_command(args: argparse.Namespace) -> int:
+    check_output_folder(args.to)
+    record = pipeline.export_capture_folder(
+        args.out, args.to, args.push_depth_mm * 1e-3, args.push_fraction, args.up, staging=atomic_path
+    )
+    print(f"wrote {args.to}: {len(record['pushed'])} garment vertices start {args.push_depth_mm:g} mm inside the body")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -387,6 +466,8 @@ def main(argv: list[str] | None = None) -> int:
             return simulate_command(args)
         if args.command == "check":
             return check_command(args)
+        if args.command == "export-capture":
+            return export_command(args)
         return stage_command(args)
     except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
         print(f"error: {error}", file=sys.stderr)

@@ -20,7 +20,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from physavatar.body import Body, closest_surface_points, linear_blend_skinning
+from physavatar.body import Body, linear_blend_skinning, surface_closest_points
 
 __all__ = [
     "BOUNDARY_MODES",
@@ -493,7 +493,7 @@ def select_boundary(
         index = np.flatnonzero(near)
     else:
         top = np.flatnonzero(x[:, 1] >= x[:, 1].max() - shoulder_band)
-        _, distance, _, _ = closest_surface_points(torch.from_numpy(x[top]), body_vertices, body_faces)
+        _, distance, _, _ = surface_closest_points(body_vertices, body_faces, torch.from_numpy(x[top]))
         d = distance.numpy()
         index = top[d <= d.min() + 0.01]
     if index.size == 0:

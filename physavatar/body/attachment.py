@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import torch
 
-from physavatar.body.body import closest_surface_points
+from physavatar.body.body import surface_closest_points
 
 __all__ = ["SurfaceAttachment", "attach_to_surface"]
 
@@ -71,7 +71,7 @@ def attach_to_surface(points: torch.Tensor, body_vertices: torch.Tensor, body_fa
     points = points.detach().cpu().to(torch.float64)
     vertices = body_vertices.detach().cpu().to(torch.float64)
     faces = body_faces.detach().cpu().long()
-    foot, _, face, barycentric = closest_surface_points(points, vertices, faces)
+    foot, _, face, barycentric = surface_closest_points(vertices, faces, points)
     axes = _triangle_frames(vertices[faces[face]][None])[0]
     offset = torch.einsum("pij,pj->pi", axes, points - foot)
     if not bool(torch.isfinite(offset).all()):

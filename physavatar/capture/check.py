@@ -18,7 +18,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from physavatar.body import closest_surface_points
+from physavatar.body import surface_closest_points
 from physavatar.capture.layout import (
     TRANSFORMS,
     UP_AXES,
@@ -295,7 +295,7 @@ def _check_cameras(index: CaptureIndex, garment: Garment, findings: Findings, ro
 def _surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Distance ``[P]`` (m) from each point to a closed triangle surface and whether it lies inside (``[P]`` bool).
 
-    Exact closest points (:func:`~physavatar.body.closest_surface_points`), in batches; inside where the point lies
+    Exact closest points (:func:`~physavatar.body.surface_closest_points`), in batches; inside where the point lies
     behind the surface normal there, interpolated from the vertex normals (exact in sign near a smooth closed
     surface). Points certainly farther than ``_EXACT_REACH`` from the surface get their nearest vertex's distance
     (an upper bound) and count as outside: their candidate triangles would be most of the mesh.
@@ -313,7 +313,7 @@ def _surface_distance(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     for start in range(0, len(near), _CHUNK):
         rows = near[start : start + _CHUNK]
         q = torch.from_numpy(points[rows])
-        closest, gap, face, bary = closest_surface_points(q, body_vertices, body_faces)
+        closest, gap, face, bary = surface_closest_points(body_vertices, body_faces, q)
         normal = (bary[:, :, None].numpy() * normals[faces[face.numpy()]]).sum(1)
         distance[rows] = gap.numpy()
         inside[rows] = ((q - closest).numpy() * normal).sum(1) < 0.0

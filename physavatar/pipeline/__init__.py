@@ -1,10 +1,14 @@
-"""PhysAvatar end to end on a synthetic capture: capture → track → estimate → appearance → animate → evaluate.
+"""PhysAvatar end to end: on a synthetic capture (capture → track → estimate → appearance → animate → evaluate) or on
+a user's own capture folder (prepare → track → ... → evaluate, no truth needed).
 
 - :mod:`~physavatar.pipeline.stages`: the stages, their settings and output folders, and :func:`run`;
+- :mod:`~physavatar.pipeline.user_capture`: the stages that differ on a user's capture, and :func:`run_capture`;
+- :mod:`~physavatar.pipeline.export`: the synthetic capture written as a user's capture folder, with defects;
 - :mod:`~physavatar.pipeline.report`: what the stages write for people to read: the markdown report, its plots and
   image strips.
 """
 
+from physavatar.pipeline.export import export_capture_folder
 from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
 from physavatar.pipeline.stages import (
     COARSE_MESH_TRACKING,
@@ -12,32 +16,53 @@ from physavatar.pipeline.stages import (
     STAGES,
     PipelineConfig,
     PipelineInterrupted,
+    StageInputs,
     animate,
     appearance,
+    camera_views,
     capture,
     estimate,
     evaluate,
     run,
+    stage_inputs,
     stderr_progress,
     track_stage,
 )
+from physavatar.pipeline.user_capture import (
+    CAPTURE_OUTPUTS,
+    CAPTURE_STAGES,
+    animate_capture,
+    evaluate_capture,
+    prepare,
+    run_capture,
+)
 
 __all__ = [
+    "CAPTURE_OUTPUTS",
+    "CAPTURE_STAGES",
     "COARSE_MESH_TRACKING",
     "OUTPUTS",
     "SMOKE_NOTE",
     "STAGES",
     "PipelineConfig",
     "PipelineInterrupted",
+    "StageInputs",
     "animate",
+    "animate_capture",
     "appearance",
     "capture",
     "estimate",
     "evaluate",
+    "evaluate_capture",
+    "export_capture_folder",
+    "camera_views",
     "plot_estimation",
     "plot_report",
+    "prepare",
     "report_markdown",
     "run",
+    "run_capture",
+    "stage_inputs",
     "stderr_progress",
     "track_stage",
     "write_strip",

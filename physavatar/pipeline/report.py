@@ -127,9 +127,9 @@ def plot_report(report: dict, folder: Path, staging: Staging) -> None:
         plt.close(fig)
 
 
-def plot_estimation(runs: dict, truth: FabricParameters, path: Path, staging: Staging) -> None:
-    """The estimators' iterations (``runs``: name → :class:`~physavatar.fit.EstimationResult`) against ``truth``, as
-    one PNG at ``path``."""
+def plot_estimation(runs: dict, truth: FabricParameters | None, path: Path, staging: Staging) -> None:
+    """The estimators' iterations (``runs``: name → :class:`~physavatar.fit.EstimationResult`) against ``truth``
+    (``None`` for a capture without one), as one PNG at ``path``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,8 +140,9 @@ def plot_estimation(runs: dict, truth: FabricParameters, path: Path, staging: St
         axes[0].plot([p.kappa_s for p in result.history], label=name)
         axes[1].plot([p.kappa_b for p in result.history], label=name)
         axes[2].plot(result.loss, label=name)
-    axes[0].axhline(truth.kappa_s, color="k", ls="--", lw=0.8)
-    axes[1].axhline(truth.kappa_b, color="k", ls="--", lw=0.8)
+    if truth is not None:
+        axes[0].axhline(truth.kappa_s, color="k", ls="--", lw=0.8)
+        axes[1].axhline(truth.kappa_b, color="k", ls="--", lw=0.8)
     for ax, title in zip(axes, ("κ_s", "κ_b", "Eq. 6 loss (m²)"), strict=True):
         ax.set_title(title)
         ax.set_xlabel("iteration")

@@ -50,9 +50,12 @@ from kernels.image_metrics import psnr, ssim
 from physavatar.body import MOTIONS, Body, named_motion
 from physavatar.capture import (
     CameraRig,
+    Capture,
+    CaptureFolder,
     Lighting,
     garment_albedo,
     load_capture,
+    load_capture_folder,
     load_truth,
     render_capture,
     write_capture,
@@ -80,12 +83,15 @@ __all__ = [
     "STAGES",
     "PipelineConfig",
     "PipelineInterrupted",
+    "StageInputs",
     "animate",
     "appearance",
     "capture",
     "estimate",
     "evaluate",
+    "camera_views",
     "run",
+    "stage_inputs",
     "stderr_progress",
     "track_stage",
 ]
@@ -329,24 +335,82 @@ def _rig(config: PipelineConfig, body: Body) -> CameraRig:
     return CameraRig.ring(config.cameras, 2.2, 0.25, (0.0, 0.86, 0.0), width, height, fov_deg=24.0, phase_deg=20.0)
 
 
-def _inputs(capture_dir: Path) -> dict:
-    path = Path(capture_dir) / "inputs.npz"
+def _inputs(path: Path) -> dict:
+    """The arrays of an ``inputs.npz`` (the synthetic capture's, or what :mod:`~physavatar.pipeline.user_capture`
+    prepared from a user's capture): tensors, and ``fps`` as a number."""
     if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing; run the capture stage first (python -m apps.avatar capture)")
+        stage = "capture" if path.parent.name == "capture" else "prepare"
+        raise FileNotFoundError(f"{path} is missing; run the {stage} stage first (python -m apps.avatar {stage})")
     with np.load(path) as data:
         return {k: torch.from_numpy(data[k]) if data[k].ndim else float(data[k]) for k in data.files}
 
 
+@dataclass(frozen=True, eq=False)
+class StageInputs:
+    """What the stages after the capture read, from the synthetic experiment or from a user's capture folder.
+
+    Attributes:
+        film: the views the fit sees: the synthetic capture, or a user's capture without its held-out cameras.
+        given: ``first_vertices`` ``[V, 3]`` (m), ``faces``, ``body_frames`` ``[T, B, 3]`` (m), ``body_faces``,
+            ``boundary_index`` ``[D]``, ``boundary_targets`` ``[T, D, 3]`` (m) and ``fps``, in the project's y-up
+            axes.
+        truth: the synthetic capture's ``truth.npz`` (:func:`physavatar.capture.load_truth`), or ``None``.
+        folder: the user's capture, or ``None`` for the synthetic experiment.
+        held_out: cameras of the user's capture kept out of the fit for the evaluation (empty for the synthetic
+            experiment, whose evaluation has the truth).
+    """
+
+    film: Capture
+    given: dict
+    truth: dict | None
+    folder: CaptureFolder | None = None
+    held_out: tuple[int, ...] = ()
+
+
+def stage_inputs(out: Path, capture: Path | None = None) -> StageInputs:
+    """The :class:`StageInputs` of the experiment in ``out``: the synthetic capture in ``out/capture``, or, with
+    ``capture``, the user's capture folder as the preparation stage left it in ``out/prepare``."""
+    if capture is None:
+        capture_dir = Path(out) / "capture"
+        film = load_capture(capture_dir)
+        given = _inputs(capture_dir / "inputs.npz")
+        return StageInputs(film, given, load_truth(capture_dir))
+    given = _inputs(Path(out) / "prepare" / "inputs.npz")
+    record = json.loads((Path(out) / "prepare" / "prepare.json").read_text())
+    folder = load_capture_folder(capture)
+    held_out = tuple(record["held_out_cameras"])
+    if given["faces"].shape != folder.garment_faces.shape or given["body_frames"].shape != folder.body_frames.shape:
+        raise ValueError(
+            f"{Path(out) / 'prepare'} was prepared from another capture than {capture}; run the prepare stage again "
+            "or pass the capture it was prepared from"
+        )
+    fit = [c for c in range(folder.film.camera_count) if c not in held_out]
+    return StageInputs(camera_views(folder.film, fit), given, None, folder, held_out)
+
+
+def camera_views(film: Capture, cameras: list[int]) -> Capture:
+    """The capture seen by ``cameras`` only (indices into its rig), renumbered ``0..len(cameras) − 1``."""
+    index = torch.as_tensor(cameras, dtype=torch.long)
+    rig = film.rig
+    intrinsics = rig.intrinsics[index]
+    views = CameraRig(rig.c2w[index], rig.width, rig.height, *intrinsics.T)
+    return dataclasses.replace(film, images=film.images[:, index], masks=film.masks[:, index], rig=views)
+
+
 def track_stage(
-    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+    config: PipelineConfig,
+    out: Path,
+    progress: Progress | None = None,
+    staging: Staging = contextlib.nullcontext,
+    capture: Path | None = None,
 ) -> Path:
-    """Track the garment through ``out/capture``; writes ``out/track``, each file through ``staging``."""
-    capture_dir, folder = Path(out) / "capture", Path(out) / "track"
-    film = load_capture(capture_dir)
-    given = _inputs(capture_dir)
-    truth = load_truth(capture_dir)
-    true_frames = torch.as_tensor(truth["garment_frames"])
-    _check_frames(film.images.shape[0], given["body_frames"].shape[0], "the capture", "inputs.npz's body frames")
+    """Track the garment through ``out/capture`` (or the user's ``capture`` folder, prepared in ``out/prepare``);
+    writes ``out/track``, each file through ``staging``."""
+    folder = Path(out) / "track"
+    inputs = stage_inputs(out, capture)
+    film, given = inputs.film, inputs.given
+    true_frames = None if inputs.truth is None else torch.as_tensor(inputs.truth["garment_frames"])
+    _check_frames(film.images.shape[0], given["body_frames"].shape[0], "the capture", "the body frames")
     result = track(
         film,
         given["first_vertices"],
@@ -356,7 +420,10 @@ def track_stage(
         config.tracking,
         truth=true_frames,
         progress=lambda t, loss, err: _say(
-            progress, "track", f"frame {t + 1}/{film.images.shape[0]}: loss {loss:.4f}, error {err * 1e3:.2f} mm"
+            progress,
+            "track",
+            f"frame {t + 1}/{film.images.shape[0]}: loss {loss:.4f}"
+            + (f", error {err * 1e3:.2f} mm" if true_frames is not None else ""),
         ),
     )
     folder.mkdir(parents=True, exist_ok=True)
@@ -364,8 +431,8 @@ def track_stage(
     record = {
         "frames": int(result.vertices.shape[0]),
         "render_loss": result.render_loss.tolist(),
-        "vertex_error_m": result.vertex_error.tolist(),
-        "mean_vertex_error_m": float(result.vertex_error[1:].mean()) if len(result.vertex_error) > 1 else 0.0,
+        "vertex_error_m": result.vertex_error.tolist() if true_frames is not None else None,
+        "mean_vertex_error_m": float(result.vertex_error[1:].mean()) if len(result.vertex_error) > 1 else None,
         "seconds_per_frame": result.frame_time,
     }
     write_json(folder / "tracking.json", record, staging)
@@ -391,30 +458,41 @@ def estimate(
     progress: Progress | None = None,
     exact: bool = False,
     staging: Staging = contextlib.nullcontext,
+    capture: Path | None = None,
 ) -> Path:
-    """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones); writes ``out/estimate``,
-    each file through ``staging``.
+    """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones) of the first
+    ``config.frames`` frames; writes ``out/estimate``, each file through ``staging``.
 
     Both of Algorithm 1 (forward differences + Adam) and the analytic Levenberg–Marquardt run from
-    ``config.start``.
+    ``config.start``. On a user's ``capture`` (no truth) the report gives the recovered parameters and the fit's
+    residual; on the synthetic experiment also their errors against the truth.
     """
-    capture_dir, folder = Path(out) / "capture", Path(out) / "estimate"
-    given = _inputs(capture_dir)
-    reference = torch.as_tensor(load_truth(capture_dir)["garment_frames"]) if exact else _tracked(out)["vertices"]
-    _check_frames(reference.shape[0], given["body_frames"].shape[0], "the reference", "inputs.npz's body frames")
+    folder = Path(out) / "estimate"
+    inputs = stage_inputs(out, capture)
+    given = inputs.given
+    if exact and inputs.truth is None:
+        raise ValueError("--exact fits the true meshes, which only the synthetic experiment has; drop --exact")
+    reference = torch.as_tensor(inputs.truth["garment_frames"]) if exact else _tracked(out)["vertices"]
+    _check_frames(reference.shape[0], given["body_frames"].shape[0], "the reference", "the body frames")
+    frames = min(config.frames, reference.shape[0])
     problem = EstimationProblem(
         given["first_vertices"],
         given["faces"],
-        reference,
-        given["body_frames"],
+        reference[:frames],
+        given["body_frames"][:frames],
         given["body_faces"],
         given["boundary_index"],
-        given["boundary_targets"],
+        given["boundary_targets"][:frames],
         given["fps"],
         config.fabric,
     )
-    truth = FabricParameters(**load_truth(capture_dir)["parameters"])
-    report = {"reference": "truth" if exact else "tracked", "truth": dataclasses.asdict(truth), "methods": {}}
+    truth = None if inputs.truth is None else FabricParameters(**inputs.truth["parameters"])
+    report = {
+        "reference": "truth" if exact else "tracked",
+        "frames": frames,
+        "truth": None if truth is None else dataclasses.asdict(truth),
+        "methods": {},
+    }
     runs = {}
     for name, run in (
         (
@@ -442,7 +520,9 @@ def estimate(
             "seconds": result.total_time or float(sum(result.wall_time)),
             "final": dataclasses.asdict(final),
             "loss": result.loss[-1],
-            "ratio_errors": {
+            "ratio_errors": None
+            if truth is None
+            else {
                 "kappa_s_over_rho": final.ratios[0] / truth.ratios[0] - 1.0,
                 "kappa_b_over_rho": final.ratios[1] / truth.ratios[1] - 1.0,
             },
@@ -459,13 +539,17 @@ def estimate(
 
 
 def appearance(
-    config: PipelineConfig, out: Path, progress: Progress | None = None, staging: Staging = contextlib.nullcontext
+    config: PipelineConfig,
+    out: Path,
+    progress: Progress | None = None,
+    staging: Staging = contextlib.nullcontext,
+    capture: Path | None = None,
 ) -> Path:
     """Recover the garment's albedo and the light from the tracked meshes (§3.3); writes ``out/appearance``, each
-    file through ``staging``."""
-    capture_dir, folder = Path(out) / "capture", Path(out) / "appearance"
-    film = load_capture(capture_dir)
-    given = _inputs(capture_dir)
+    file through ``staging``. A capture that records no calibrated sun gets the paper's ambient light alone."""
+    folder = Path(out) / "appearance"
+    inputs = stage_inputs(out, capture)
+    film, given = inputs.film, inputs.given
     tracked = _tracked(out)
     _say(progress, "appearance", "tracing sky occlusion and sun visibility on the tracked meshes")
     result = estimate_appearance(
@@ -475,10 +559,10 @@ def appearance(
         face_colors=tracked["colors"],
         body_frames=given["body_frames"],
         body_faces=given["body_faces"],
+        sun_direction="capture" if film.lighting is not None else None,
         ao_samples=config.ao_samples,
         seed=config.seed + 1,
     )
-    truth_albedo = torch.as_tensor(load_truth(capture_dir)["albedo"])
     folder.mkdir(parents=True, exist_ok=True)
     write_arrays(
         folder / "appearance.npz",
@@ -487,10 +571,13 @@ def appearance(
         baked=result.initial_albedo.numpy(),
         observed=result.observed.numpy(),
     )
+    truth_albedo = None if inputs.truth is None else torch.as_tensor(inputs.truth["albedo"])
     record = {
         "lighting": result.lighting.to_dict(),
-        "albedo_error": albedo_error(result.albedo, truth_albedo, result.observed),
-        "baked_albedo_error": albedo_error(result.initial_albedo, truth_albedo, result.observed),
+        "albedo_error": None if truth_albedo is None else albedo_error(result.albedo, truth_albedo, result.observed),
+        "baked_albedo_error": None
+        if truth_albedo is None
+        else albedo_error(result.initial_albedo, truth_albedo, result.observed),
         "loss_history": result.loss_history,
         "pixels": result.pixel_count,
     }
@@ -508,9 +595,12 @@ def appearance(
         ao_samples=config.ao_samples,
     )
     write_strip(images[0], folder / "relit.png", staging)
-    _say(
-        progress, "appearance", f"albedo error {record['albedo_error']:.4f} (baked {record['baked_albedo_error']:.4f})"
-    )
+    if truth_albedo is not None:
+        _say(
+            progress,
+            "appearance",
+            f"albedo error {record['albedo_error']:.4f} (baked {record['baked_albedo_error']:.4f})",
+        )
     return folder
 
 
@@ -525,7 +615,7 @@ def animate(
         raise FileNotFoundError(f"{estimate_path} is missing; run the estimate stage first")
     recovered = FabricParameters(**json.loads(estimate_path.read_text())["recovered"])
     truth = FabricParameters(**load_truth(capture_dir)["parameters"])
-    given = _inputs(capture_dir)
+    given = _inputs(capture_dir / "inputs.npz")
     body, garment, boundary = _scene(config)
     if not torch.equal(garment.faces, given["faces"]):
         raise ValueError("the capture's garment differs from this configuration's skirt; use the capture's config")

@@ -1,29 +1,12 @@
 """PhysAvatar end to end at smoke size through the command line: every stage's files and the report."""
 
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[3]
-
-
-def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "apps.avatar", *args], cwd=ROOT, capture_output=True, text=True, check=False
-    )
-
-
-@pytest.fixture(scope="module")
-def experiment(tmp_path_factory):
-    out = tmp_path_factory.mktemp("avatar")
-    result = _run("pipeline", "--smoke", "--out", str(out), "--device", "cpu")
-    assert result.returncode == 0, result.stderr[-3000:]
-    return out, result.stderr
+from tests.physavatar.pipeline.commands import run_avatar as _run
 
 
 def test_pipeline_writes_every_stage_and_the_table(experiment):
