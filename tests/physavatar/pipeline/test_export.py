@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from kernels import backend
 from kernels.raycast import MeshBVH
 from physavatar.body import surface_closest_points
 from physavatar.capture import load_capture_folder
@@ -47,7 +48,8 @@ def test_the_pushed_vertices_start_three_millimetres_inside_the_body(exported, d
     # 3 mm along the normal of the nearest triangle: as deep where that triangle's interior was the nearest point,
     # shallower where an edge or a corner was (a neighbouring triangle may then be nearer), never deeper
     assert float(distance.max()) <= 3e-3 + 1e-8 and float(distance.median()) > 2.9e-3
-    inside = MeshBVH(capture.body_frames[0], capture.body_faces, winding_numbers=True).inside(x)
+    dev = backend.torch_device()
+    inside = MeshBVH(capture.body_frames[0].to(dev), capture.body_faces.to(dev), winding_numbers=True).inside(x.to(dev))
     assert bool(inside.all())
 
 
