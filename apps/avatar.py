@@ -167,6 +167,13 @@ def _parser() -> argparse.ArgumentParser:
             )
         if name == "estimate":
             stage.add_argument("--exact", action="store_true", help="fit the true meshes instead of the tracked ones")
+            stage.add_argument(
+                "--stiffness",
+                choices=("global", "regions"),
+                default="global",
+                help="regions: also fit (kappa_s, kappa_b) per angular sector of the garment, by the rollout's adjoint",
+            )
+            stage.add_argument("--regions", type=int, default=8, help="sectors for --stiffness regions (default 8)")
     check = commands.add_parser("check", help="check a capture folder for problems before any heavy work")
     check.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture folder (or its transforms.json)")
     return parser
@@ -355,12 +362,15 @@ def _kept_stages(out: Path, written: list[Path], outputs: dict[str, tuple[str, .
 def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
     """The function the command runs: ``stage(config, out, progress, staging=...)``."""
     exact = getattr(args, "exact", False)
+    regions = args.regions if getattr(args, "stiffness", "global") == "regions" else None
+    if regions is not None and not 1 <= regions <= 64:
+        raise ValueError(f"--regions must lie in 1..64 sectors, got {regions}")
     if args.capture is None:
         return {
             "pipeline": pipeline.run,
             "capture": pipeline.capture,
             "track": pipeline.track_stage,
-            "estimate": functools.partial(pipeline.estimate, exact=exact),
+            "estimate": functools.partial(pipeline.estimate, exact=exact, regions=regions),
             "appearance": pipeline.appearance,
             "animate": pipeline.animate,
             "evaluate": pipeline.evaluate,
@@ -378,7 +388,7 @@ def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
         "pipeline": functools.partial(pipeline.run_capture, capture=capture, held_out_cameras=held_out),
         "prepare": functools.partial(pipeline.prepare, capture=capture, held_out_cameras=held_out),
         "track": track_prepared,
-        "estimate": functools.partial(pipeline.estimate, exact=exact, capture=capture),
+        "estimate": functools.partial(pipeline.estimate, exact=exact, capture=capture, regions=regions),
         "appearance": functools.partial(pipeline.appearance, capture=capture),
         "animate": functools.partial(pipeline.animate_capture, capture=capture),
         "evaluate": functools.partial(pipeline.evaluate_capture, capture=capture),

@@ -5,6 +5,7 @@ The paper's §3.1–§3.3 and its evaluation, each a module:
 - :mod:`~physavatar.fit.gaussians`: Gaussians glued to mesh faces and their rasterised images (§3.1, Eq. 1);
 - :mod:`~physavatar.fit.tracking`: the garment mesh tracked through the capture (§3.1, Eqs. 1–4);
 - :mod:`~physavatar.fit.estimation`: the fabric's physical parameters from the tracked meshes (§3.2, Algorithm 1);
+- :mod:`~physavatar.fit.regions`: stiffness per garment region, fitted through the rollout's adjoint;
 - :mod:`~physavatar.fit.appearance`: the garment's albedo and the light by inverse rendering (§3.3, Eq. 8);
 - :mod:`~physavatar.fit.evaluation`: geometry scores against the truth (Chamfer distance, F-score; Table 2).
 
@@ -46,6 +47,7 @@ from physavatar.fit.gaussians import (
     project_gaussians,
     render_mesh_gaussians,
 )
+from physavatar.fit.regions import RegionEstimate, estimate_regions, garment_regions
 from physavatar.fit.tracking import TrackConfig, TrackResult, isometry_loss, mesh_neighbours, normal_loss, track
 
 __all__ = [
@@ -59,6 +61,7 @@ __all__ = [
     "GaussianAppearance",
     "GeometryScores",
     "IterationRecord",
+    "RegionEstimate",
     "Rollout",
     "Subdivision",
     "TrackConfig",
@@ -70,8 +73,10 @@ __all__ = [
     "estimate_analytic",
     "estimate_appearance",
     "estimate_finite_differences",
+    "estimate_regions",
     "face_frames",
     "gather_garment_pixels",
+    "garment_regions",
     "geometry_scores",
     "isometry_loss",
     "lbs_garment",

@@ -72,6 +72,7 @@ from physavatar.fit.estimation import (
     rollout,
 )
 from physavatar.fit.evaluation import geometry_scores, lbs_garment
+from physavatar.fit.regions import estimate_regions, garment_regions
 from physavatar.fit.tracking import TrackConfig, track
 from physavatar.garment import procedural_skirt, select_boundary
 from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
@@ -459,9 +460,12 @@ def estimate(
     exact: bool = False,
     staging: Staging = contextlib.nullcontext,
     capture: Path | None = None,
+    regions: int | None = None,
 ) -> Path:
     """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones) of the first
-    ``config.frames`` frames; writes ``out/estimate``, each file through ``staging``.
+    ``config.frames`` frames; writes ``out/estimate``, each file through ``staging``. With ``regions``, also a
+    (κ_s, κ_b) per angular sector of the garment (:func:`physavatar.fit.regions.estimate_regions`, gradients by the
+    rollout's adjoint), from the global estimate, in ``estimate.json``'s ``regions``.
 
     Both of Algorithm 1 (forward differences + Adam) and the analytic Levenberg–Marquardt run from
     ``config.start``. On a user's ``capture`` (no truth) the report gives the recovered parameters and the fit's
@@ -531,6 +535,16 @@ def estimate(
         }
     best = min(runs.values(), key=lambda r: r.loss[-1])
     report["recovered"] = dataclasses.asdict(best.final)
+    if regions is not None:
+        sectors = garment_regions(given["first_vertices"], given["faces"], regions)
+        _say(progress, "estimate", f"κ_s, κ_b in {regions} regions by the rollout's adjoint")
+        fit = estimate_regions(
+            problem,
+            sectors,
+            best.final,
+            progress=lambda i, loss, s, b: _say(progress, "estimate", f"regions {i}: loss {loss:.3e}"),
+        )
+        report["regions"] = fit.to_dict()
     report["recovered_by"] = best.method
     folder.mkdir(parents=True, exist_ok=True)
     write_json(folder / "estimate.json", report, staging)

@@ -79,3 +79,16 @@ def test_tracking_options_out_of_range_are_refused(tmp_path, flag, value, name):
     result = _run("track", "--smoke", "--out", str(tmp_path), "--device", "cpu", flag, value)
     assert result.returncode == 2
     assert name in result.stderr and "Traceback" not in result.stderr
+
+
+def test_estimate_by_regions_writes_each_regions_stiffness(experiment, tmp_path):
+    out, _ = experiment
+    for stage in ("capture", "track"):
+        (tmp_path / stage).symlink_to(out / stage)
+    result = _run("estimate", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--stiffness", "regions",
+                  "--regions", "2")  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    regions = json.loads((tmp_path / "estimate" / "estimate.json").read_text())["regions"]
+    assert len(regions["kappa_s"]) == len(regions["kappa_b"]) == 2 and sum(regions["faces_per_region"]) > 0
+    assert regions["loss"][-1] <= regions["loss"][0]
+    assert "regions" in result.stderr
