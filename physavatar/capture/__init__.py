@@ -18,7 +18,7 @@ A researcher brings a real capture as a folder (``docs/capture.md``): the video,
 
 from physavatar.capture.check import MAX_EXTENT, CaptureCheck, check_capture
 from physavatar.capture.dataset import Capture, load_capture, load_truth, write_capture
-from physavatar.capture.folder import CaptureFolder, load_capture_folder
+from physavatar.capture.folder import CaptureFolder, from_capture_axes, load_capture_folder, to_capture_axes
 from physavatar.capture.layout import (
     FRAME_KEYS,
     INTRINSIC_KEYS,
@@ -69,6 +69,7 @@ __all__ = [
     "garment_albedo",
     "garment_path",
     "hemisphere_directions",
+    "from_capture_axes",
     "load_capture",
     "load_capture_folder",
     "load_truth",
@@ -80,5 +81,6 @@ __all__ = [
     "read_views",
     "render_capture",
     "shade_mesh",
+    "to_capture_axes",
     "write_capture",
 ]

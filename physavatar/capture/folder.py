@@ -38,7 +38,9 @@ from physavatar.capture.rig import CameraRig
 
 __all__ = [
     "CaptureFolder",
+    "from_capture_axes",
     "load_capture_folder",
+    "to_capture_axes",
 ]
 
 
@@ -46,6 +48,18 @@ def _z_up_to_y_up() -> torch.Tensor:
     """``[3, 3]`` float64 rotation taking z-up world coordinates to the project's y-up ones: ``(x, y, z) → (x, z,
     −y)`` (a signed permutation, so exact in floating point)."""
     return torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]], dtype=torch.float64)
+
+
+def to_capture_axes(points: torch.Tensor, up: str) -> torch.Tensor:
+    """``[..., 3]`` points (or directions) in the project's y-up axes turned into a capture's whose up axis is ``up``
+    (``"y"``: unchanged; ``"z"``: ``(x, y, z) → (x, −z, y)``)."""
+    return points if up == "y" else points @ _z_up_to_y_up().to(points)
+
+
+def from_capture_axes(points: torch.Tensor, up: str) -> torch.Tensor:
+    """``[..., 3]`` points (or directions) in a capture's axes (up axis ``up``) turned into the project's y-up axes:
+    the inverse of :func:`to_capture_axes`."""
+    return points if up == "y" else points @ _z_up_to_y_up().to(points).T
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,15 +92,11 @@ class CaptureFolder:
 
     def to_capture_axes(self, points: torch.Tensor) -> torch.Tensor:
         """``[..., 3]`` points (or directions) in the project's y-up axes turned into the capture's declared axes."""
-        if self.up == "y":
-            return points
-        return points @ _z_up_to_y_up().to(points)
+        return to_capture_axes(points, self.up)
 
     def from_capture_axes(self, points: torch.Tensor) -> torch.Tensor:
         """``[..., 3]`` points (or directions) in the capture's declared axes turned into the project's y-up axes."""
-        if self.up == "y":
-            return points
-        return points @ _z_up_to_y_up().to(points).T
+        return from_capture_axes(points, self.up)
 
 
 def load_capture_folder(path: str | Path, progress: Callable[[int, int], None] | None = None) -> CaptureFolder:

@@ -18,12 +18,10 @@ import numpy as np
 import torch
 
 from physavatar.body import surface_closest_points
+from physavatar.capture import to_capture_axes
 from physavatar.result_files import Staging, write_json, write_obj, write_text
 
 __all__ = ["export_capture_folder"]
-
-_Z_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]], dtype=torch.float64)
-"""Project (y-up) axes to z-up axes: (x, y, z) → (x, −z, y)."""
 
 
 def export_capture_folder(
@@ -84,13 +82,12 @@ def export_capture_folder(
     template = first.clone()
     template[pushed] = closest[pushed] - push_depth * normal[pushed]
 
-    turn = _Z_UP if up == "z" else torch.eye(3, dtype=torch.float64)
     folder = Path(folder)
     for sub in ("images", "masks", "body"):
         (folder / sub).mkdir(parents=True, exist_ok=True)
     meta = json.loads((source / "transforms.json").read_text())
     world = torch.eye(4, dtype=torch.float64)
-    world[:3, :3] = turn
+    world[:3, :3] = to_capture_axes(torch.eye(3, dtype=torch.float64), up).T  # acting on column vectors
     for frame in meta["frames"]:
         for key in ("file_path", "mask_path"):
             name = Path(frame[key]).name
@@ -100,8 +97,9 @@ def export_capture_folder(
     for key in ("lighting", "background"):
         meta.pop(key, None)  # a user's capture records neither: the appearance stage recovers the light
     for t, vertices in enumerate(body_frames):
-        write_obj(folder / "body" / f"frame_{t:04d}.obj", vertices @ turn.T, body_faces, staging)
-    write_obj(folder / "garment.obj", template @ turn.T, faces, staging, "the garment at frame 0, pushed into the body")
+        write_obj(folder / "body" / f"frame_{t:04d}.obj", to_capture_axes(vertices, up), body_faces, staging)
+    pushed_in = "the garment at frame 0, pushed into the body"
+    write_obj(folder / "garment.obj", to_capture_axes(template, up), faces, staging, pushed_in)
     write_text(folder / "boundary.txt", "\n".join(str(int(i)) for i in boundary) + "\n", staging)
     record = {"pushed": pushed.tolist(), "push_depth_m": push_depth, "up": up}
     write_json(folder / "export.json", record, staging)
