@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
 import json
 import math
 import sys
@@ -91,7 +92,10 @@ __all__ = [
     "estimate",
     "evaluate",
     "camera_views",
+    "random_parameters",
     "run",
+    "run_stages",
+    "say",
     "stage_inputs",
     "stderr_progress",
     "track_stage",
@@ -230,9 +234,11 @@ class PipelineInterrupted(KeyboardInterrupt):
         self.stage, self.finished = stage, finished
 
 
-def _say(progress: Progress | None, stage: str, message: str) -> None:
+def say(progress: Progress | None, stage: str, message: str) -> None:
+    """Hand ``message`` about ``stage`` to ``progress``, if there is one."""
     if progress is not None:
         progress(stage, message)
+
 
 
 def stderr_progress(stage: str, message: str) -> None:
@@ -286,12 +292,12 @@ def capture(
     problem, _ = _forward(config, body, garment, boundary, config.fit_motion, config.frames)
     body_frames, targets = problem.body_frames, problem.boundary_targets
     truth = FabricParameters.from_config(config.fabric)
-    _say(progress, "capture", f"simulating the truth ({config.frames} frames, {garment.vertices.shape[0]} vertices)")
+    say(progress, "capture", f"simulating the truth ({config.frames} frames, {garment.vertices.shape[0]} vertices)")
     frames = rollout(problem, truth).frames
     albedo = garment_albedo(garment.vertices, garment.faces, pattern="checks", bands=6)
     rig = _rig(config, body)
     lighting = Lighting()
-    _say(progress, "capture", f"rendering {config.cameras} views × {config.frames} frames")
+    say(progress, "capture", f"rendering {config.cameras} views × {config.frames} frames")
     film = render_capture(
         frames,
         garment.faces,
@@ -304,7 +310,7 @@ def capture(
         config.fps,
         ao_samples=config.ao_samples,
         seed=config.seed,
-        progress=lambda done, n: _say(progress, "capture", f"frame {done}/{n}"),  # done counts from 1
+        progress=lambda done, n: say(progress, "capture", f"frame {done}/{n}"),  # done counts from 1
     )
     write_capture(
         film,
@@ -351,42 +357,48 @@ class StageInputs:
     """What the stages after the capture read, from the synthetic experiment or from a user's capture folder.
 
     Attributes:
-        film: the views the fit sees: the synthetic capture, or a user's capture without its held-out cameras.
+        film: the views the fit sees: the synthetic capture, or a user's capture without its held-out cameras;
+            ``None`` where the stage asked for no views.
         given: ``first_vertices`` ``[V, 3]`` (m), ``faces``, ``body_frames`` ``[T, B, 3]`` (m), ``body_faces``,
             ``boundary_index`` ``[D]``, ``boundary_targets`` ``[T, D, 3]`` (m) and ``fps``, in the project's y-up
             axes.
         truth: the synthetic capture's ``truth.npz`` (:func:`physavatar.capture.load_truth`), or ``None``.
-        folder: the user's capture, or ``None`` for the synthetic experiment.
+        folder: the user's capture, or ``None`` for the synthetic experiment or where no views were asked for.
         held_out: cameras of the user's capture kept out of the fit for the evaluation (empty for the synthetic
             experiment, whose evaluation has the truth).
+        up: the up axis of the capture's world (``"y"`` for the synthetic experiment), for results written back.
     """
 
-    film: Capture
+    film: Capture | None
     given: dict
     truth: dict | None
     folder: CaptureFolder | None = None
     held_out: tuple[int, ...] = ()
+    up: str = "y"
 
 
-def stage_inputs(out: Path, capture: Path | None = None) -> StageInputs:
+def stage_inputs(out: Path, capture: Path | None = None, views: bool = True) -> StageInputs:
     """The :class:`StageInputs` of the experiment in ``out``: the synthetic capture in ``out/capture``, or, with
-    ``capture``, the user's capture folder as the preparation stage left it in ``out/prepare``."""
+    ``capture``, the user's capture folder as the preparation stage left it in ``out/prepare``. Without ``views``
+    no image is read (a stage that needs only the meshes)."""
     if capture is None:
         capture_dir = Path(out) / "capture"
-        film = load_capture(capture_dir)
+        film = load_capture(capture_dir) if views else None
         given = _inputs(capture_dir / "inputs.npz")
         return StageInputs(film, given, load_truth(capture_dir))
     given = _inputs(Path(out) / "prepare" / "inputs.npz")
     record = json.loads((Path(out) / "prepare" / "prepare.json").read_text())
-    folder = load_capture_folder(capture)
     held_out = tuple(record["held_out_cameras"])
+    if not views:
+        return StageInputs(None, given, None, None, held_out, record["up"])
+    folder = load_capture_folder(capture)
     if given["faces"].shape != folder.garment_faces.shape or given["body_frames"].shape != folder.body_frames.shape:
         raise ValueError(
             f"{Path(out) / 'prepare'} was prepared from another capture than {capture}; run the prepare stage again "
             "or pass the capture it was prepared from"
         )
     fit = [c for c in range(folder.film.camera_count) if c not in held_out]
-    return StageInputs(camera_views(folder.film, fit), given, None, folder, held_out)
+    return StageInputs(camera_views(folder.film, fit), given, None, folder, held_out, folder.up)
 
 
 def camera_views(film: Capture, cameras: list[int]) -> Capture:
@@ -420,7 +432,7 @@ def track_stage(
         given["body_faces"],
         config.tracking,
         truth=true_frames,
-        progress=lambda t, loss, err: _say(
+        progress=lambda t, loss, err: say(
             progress,
             "track",
             f"frame {t + 1}/{film.images.shape[0]}: loss {loss:.4f}"
@@ -472,7 +484,7 @@ def estimate(
     residual; on the synthetic experiment also their errors against the truth.
     """
     folder = Path(out) / "estimate"
-    inputs = stage_inputs(out, capture)
+    inputs = stage_inputs(out, capture, views=False)
     given = inputs.given
     if exact and inputs.truth is None:
         raise ValueError("--exact fits the true meshes, which only the synthetic experiment has; drop --exact")
@@ -508,9 +520,9 @@ def estimate(
             lambda cb: estimate_finite_differences(problem, config.start, iterations=config.fd_iterations, progress=cb),
         ),
     ):
-        _say(progress, "estimate", f"{name} from κ_s = {config.start.kappa_s:g}, κ_b = {config.start.kappa_b:g}")
+        say(progress, "estimate", f"{name} from κ_s = {config.start.kappa_s:g}, κ_b = {config.start.kappa_b:g}")
         result = run(
-            lambda i, rec, name=name: _say(
+            lambda i, rec, name=name: say(
                 progress,
                 "estimate",
                 f"{name} {i}: κ_s {rec.parameters.kappa_s:.4f}, κ_b {rec.parameters.kappa_b:.4f}, loss {rec.loss:.3e}",
@@ -537,12 +549,12 @@ def estimate(
     report["recovered"] = dataclasses.asdict(best.final)
     if regions is not None:
         sectors = garment_regions(given["first_vertices"], given["faces"], regions)
-        _say(progress, "estimate", f"κ_s, κ_b in {regions} regions by the rollout's adjoint")
+        say(progress, "estimate", f"κ_s, κ_b in {regions} regions by the rollout's adjoint")
         fit = estimate_regions(
             problem,
             sectors,
             best.final,
-            progress=lambda i, loss, s, b: _say(progress, "estimate", f"regions {i}: loss {loss:.3e}"),
+            progress=lambda i, loss, s, b: say(progress, "estimate", f"regions {i}: loss {loss:.3e}"),
         )
         report["regions"] = fit.to_dict()
     report["recovered_by"] = best.method
@@ -565,7 +577,7 @@ def appearance(
     inputs = stage_inputs(out, capture)
     film, given = inputs.film, inputs.given
     tracked = _tracked(out)
-    _say(progress, "appearance", "tracing sky occlusion and sun visibility on the tracked meshes")
+    say(progress, "appearance", "tracing sky occlusion and sun visibility on the tracked meshes")
     result = estimate_appearance(
         tracked["vertices"],
         given["faces"],
@@ -610,12 +622,20 @@ def appearance(
     )
     write_strip(images[0], folder / "relit.png", staging)
     if truth_albedo is not None:
-        _say(
+        say(
             progress,
             "appearance",
             f"albedo error {record['albedo_error']:.4f} (baked {record['baked_albedo_error']:.4f})",
         )
     return folder
+
+
+def random_parameters(config: PipelineConfig, density: float) -> FabricParameters:
+    """The "w/o physics" fabric: ``κ_s``, ``κ_b`` drawn log-uniformly from the paper's 0.1–8 with
+    ``config.random_seed``, at ``density``."""
+    generator = np.random.default_rng(config.random_seed)
+    lo, hi = math.log(0.1), math.log(8.0)
+    return FabricParameters(density, *np.exp(generator.uniform(lo, hi, size=2)).tolist())
 
 
 def animate(
@@ -634,12 +654,10 @@ def animate(
     if not torch.equal(garment.faces, given["faces"]):
         raise ValueError("the capture's garment differs from this configuration's skirt; use the capture's config")
     problem, clip = _forward(config, body, garment, boundary, config.eval_motion, config.eval_frames)
-    generator = np.random.default_rng(config.random_seed)
-    lo, hi = math.log(0.1), math.log(8.0)
-    random = FabricParameters(truth.density, *np.exp(generator.uniform(lo, hi, size=2)).tolist())
+    random = random_parameters(config, truth.density)
     sequences = {}
     for name, params in (("truth", truth), ("full", recovered), ("without_physics", random)):
-        _say(progress, "animate", f"{name}: κ_s {params.kappa_s:.3f}, κ_b {params.kappa_b:.3f}")
+        say(progress, "animate", f"{name}: κ_s {params.kappa_s:.3f}, κ_b {params.kappa_b:.3f}")
         sequences[name] = rollout(problem, params).frames
     sequences["lbs"] = lbs_garment(
         body, garment.vertices, clip.rotations[: config.eval_frames], clip.root_translation[: config.eval_frames]
@@ -707,7 +725,7 @@ def evaluate(
     renders = {"truth": reference}
     for key, (label, texture) in rows.items():
         geometry = seq["full" if key == "without_appearance" else key]
-        _say(progress, "evaluate", f"{label}: geometry and renders")
+        say(progress, "evaluate", f"{label}: geometry and renders")
         scores = geometry_scores(geometry, seq["truth"], faces)
         images = render(geometry, texture)
         renders[key] = images
@@ -743,12 +761,22 @@ def run(
     """
     out = Path(out)
     stages = (capture, track_stage, estimate, appearance, animate, evaluate)
-    for index, (name, stage) in enumerate(zip(STAGES, stages, strict=True)):
-        start = time.perf_counter()
-        _say(progress, name, f"stage {index + 1}/{len(stages)}")
-        try:
-            stage(config, out, progress, staging=staging)
-        except KeyboardInterrupt as stop:
-            raise PipelineInterrupted(name, STAGES[:index]) from stop
-        _say(progress, name, f"done in {time.perf_counter() - start:.1f} s")
+    bound = [functools.partial(stage, config, out, progress, staging=staging) for stage in stages]
+    run_stages(list(zip(STAGES, bound, strict=True)), progress)
     return out / "evaluate" / "report.md"
+
+
+def run_stages(stages: list[tuple[str, Callable[[], object]]], progress: Progress | None) -> None:
+    """Run ``(name, stage)`` pairs in order, saying when each starts and how long it took.
+
+    Raises:
+        PipelineInterrupted: on Ctrl-C, naming the stage it stopped and those that finished.
+    """
+    for index, (name, stage) in enumerate(stages):
+        start = time.perf_counter()
+        say(progress, name, f"stage {index + 1}/{len(stages)}")
+        try:
+            stage()
+        except KeyboardInterrupt as stop:
+            raise PipelineInterrupted(name, tuple(n for n, _ in stages[:index])) from stop
+        say(progress, name, f"done in {time.perf_counter() - start:.1f} s")

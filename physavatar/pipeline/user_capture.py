@@ -27,7 +27,6 @@ import contextlib
 import dataclasses
 import json
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +36,7 @@ from kernels import backend
 from kernels.image_metrics import ssim
 from kernels.raycast import MeshBVH
 from physavatar.body import attach_to_surface
-from physavatar.capture import Lighting, check_capture, load_capture_folder, render_capture
+from physavatar.capture import Lighting, check_capture, load_capture_folder, render_capture, to_capture_axes
 from physavatar.drive import BodyDriver
 from physavatar.fit.estimation import EstimationProblem, FabricParameters, rollout
 from physavatar.garment import Garment, select_boundary
@@ -45,12 +44,15 @@ from physavatar.intersections import resolve_intersections
 from physavatar.pipeline.report import SMOKE_NOTE, write_strip
 from physavatar.pipeline.stages import (
     BODY_COLOR,
+    OUTPUTS,
     PipelineConfig,
-    PipelineInterrupted,
     Progress,
     appearance,
     camera_views,
     estimate,
+    random_parameters,
+    run_stages,
+    say,
     stage_inputs,
     track_stage,
 )
@@ -74,9 +76,7 @@ CAPTURE_OUTPUTS: dict[str, tuple[str, ...]] = {
         "prepare/boundary.txt",
         "prepare/prepare.json",
     ),
-    "track": ("track/", "track/tracked.npz", "track/tracking.json"),
-    "estimate": ("estimate/", "estimate/estimate.json", "estimate/estimate.png"),
-    "appearance": ("appearance/", "appearance/appearance.npz", "appearance/appearance.json", "appearance/relit.png"),
+    **{stage: OUTPUTS[stage] for stage in ("track", "estimate", "appearance")},  # the synthetic experiment's stages
     "animate": ("animate/", "animate/animation.npz"),
     "evaluate": ("evaluate/", "evaluate/report.json", "evaluate/report.md", "evaluate/comparison.png"),
 }
@@ -86,11 +86,6 @@ frame)."""
 GAP_OVER_CONTACT_DISTANCE = 2.0
 """Clearance the preparation leaves between the garment and the frame-0 body, in barrier activation distances
 ``d̂``: a vertex closer than ``d̂`` would start inside the barrier's support, one at 0 would make it infinite."""
-
-
-def _say(progress: Progress | None, stage: str, message: str) -> None:
-    if progress is not None:
-        progress(stage, message)
 
 
 def prepare(
@@ -122,13 +117,13 @@ def prepare(
             fix), a held-out camera outside the capture, or one that would leave no camera to fit.
     """
     folder_out = Path(out) / "prepare"
-    _say(progress, "prepare", f"checking {capture}")
+    say(progress, "prepare", f"checking {capture}")
     checked = check_capture(capture)
     if not checked.ok:
         raise ValueError(f"the capture {capture} cannot be used as it is:\n{checked.format()}")
     for warning in checked.warnings:
-        _say(progress, "prepare", f"warning: {warning.where}: {warning.what}")
-    folder = load_capture_folder(capture, progress=lambda done, n: _say(progress, "prepare", f"frame {done}/{n}"))
+        say(progress, "prepare", f"warning: {warning.where}: {warning.what}")
+    folder = load_capture_folder(capture, progress=lambda done, n: say(progress, "prepare", f"frame {done}/{n}"))
     cameras = folder.film.camera_count
     if held_out_cameras is None:
         held_out_cameras = (cameras - 1,) if cameras >= 3 else ()
@@ -143,13 +138,13 @@ def prepare(
     resolved, report = resolve_intersections(
         folder.garment_vertices, folder.garment_faces, body0, folder.body_faces, gap
     )
-    _say(progress, "prepare", report.summary())
+    say(progress, "prepare", report.summary())
     garment = Garment(resolved, folder.garment_faces, folder.path.name)
     if folder.boundary is not None:
         boundary, chosen = folder.boundary, "given"
     else:
         boundary, chosen = select_boundary(garment, (body0, folder.body_faces), mode="auto"), "automatic"
-    _say(progress, "prepare", f"{boundary.numel()} boundary vertices ({chosen})")
+    say(progress, "prepare", f"{boundary.numel()} boundary vertices ({chosen})")
     driver = BodyDriver.from_body_frames(folder.body_frames, folder.body_faces, resolved, boundary, folder.film.fps)
     folder_out.mkdir(parents=True, exist_ok=True)
     write_arrays(
@@ -212,7 +207,7 @@ def animate_capture(
     """Simulate the garment over the capture's whole body sequence with each method's parameters; writes
     ``out/animate``. The frames past the fit's ``config.frames`` are motion the estimate never saw."""
     folder = Path(out) / "animate"
-    inputs = stage_inputs(out, capture)
+    inputs = stage_inputs(out, capture, views=False)
     given = inputs.given
     recovered = _recovered(out)
     frames = given["body_frames"].shape[0]
@@ -227,12 +222,10 @@ def animate_capture(
         given["fps"],
         config.fabric,
     )
-    generator = np.random.default_rng(config.random_seed)
-    lo, hi = math.log(0.1), math.log(8.0)
-    random = FabricParameters(recovered.density, *np.exp(generator.uniform(lo, hi, size=2)).tolist())
+    random = random_parameters(config, recovered.density)
     sequences = {}
     for name, params in (("full", recovered), ("without_physics", random)):
-        _say(progress, "animate", f"{name}: κ_s {params.kappa_s:.3f}, κ_b {params.kappa_b:.3f} over {frames} frames")
+        say(progress, "animate", f"{name}: κ_s {params.kappa_s:.3f}, κ_b {params.kappa_b:.3f} over {frames} frames")
         sequences[name] = rollout(problem, params).frames
     attachment = attach_to_surface(given["first_vertices"], given["body_frames"][0], given["body_faces"])
     sequences["attached"] = attachment.positions(given["body_frames"], given["body_faces"])
@@ -240,7 +233,7 @@ def animate_capture(
     for t, vertices in enumerate(sequences["full"]):
         write_obj(
             folder / f"garment_{t:04d}.obj",
-            inputs.folder.to_capture_axes(vertices),
+            to_capture_axes(vertices, inputs.up),
             given["faces"],
             staging,
             f"frame {t}, the recovered parameters",
@@ -305,7 +298,7 @@ def evaluate_capture(
     }
     strips = [views.images[-1, 0]]
     for key, label in METHODS.items():
-        _say(
+        say(
             progress, "evaluate", f"{label}: rendering {len(cameras)} held-out view(s) × {body_frames.shape[0]} frames"
         )
         render = render_capture(
@@ -433,12 +426,5 @@ def run_capture(
         lambda: animate_capture(config, out, progress, staging, capture=capture),
         lambda: evaluate_capture(config, out, progress, staging, capture=capture),
     )
-    for index, (name, stage) in enumerate(zip(CAPTURE_STAGES, stages, strict=True)):
-        start = time.perf_counter()
-        _say(progress, name, f"stage {index + 1}/{len(stages)}")
-        try:
-            stage()
-        except KeyboardInterrupt as stop:
-            raise PipelineInterrupted(name, CAPTURE_STAGES[:index]) from stop
-        _say(progress, name, f"done in {time.perf_counter() - start:.1f} s")
+    run_stages(list(zip(CAPTURE_STAGES, stages, strict=True)), progress)
     return out / "evaluate" / "report.md"
