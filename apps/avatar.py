@@ -174,6 +174,12 @@ def _parser() -> argparse.ArgumentParser:
                 help="regions: also fit (kappa_s, kappa_b) per angular sector of the garment, by the rollout's adjoint",
             )
             stage.add_argument("--regions", type=int, default=8, help="sectors for --stiffness regions (default 8)")
+            stage.add_argument(
+                "--fit",
+                choices=pipeline.FITS,
+                default="meshes",
+                help="images: fit the parameters to the capture's images through the rollout, no tracked meshes",
+            )
     check = commands.add_parser("check", help="check a capture folder for problems before any heavy work")
     check.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture folder (or its transforms.json)")
     return parser
@@ -362,6 +368,7 @@ def _kept_stages(out: Path, written: list[Path], outputs: dict[str, tuple[str, .
 def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
     """The function the command runs: ``stage(config, out, progress, staging=...)``."""
     exact = getattr(args, "exact", False)
+    fit = getattr(args, "fit", "meshes")
     regions = args.regions if getattr(args, "stiffness", "global") == "regions" else None
     if regions is not None and not 1 <= regions <= 64:
         raise ValueError(f"--regions must lie in 1..64 sectors, got {regions}")
@@ -370,7 +377,7 @@ def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
             "pipeline": pipeline.run,
             "capture": pipeline.capture,
             "track": pipeline.track_stage,
-            "estimate": functools.partial(pipeline.estimate, exact=exact, regions=regions),
+            "estimate": functools.partial(pipeline.estimate, exact=exact, regions=regions, fit=fit),
             "appearance": pipeline.appearance,
             "animate": pipeline.animate,
             "evaluate": pipeline.evaluate,
@@ -388,7 +395,7 @@ def _stage(args: argparse.Namespace, config: pipeline.PipelineConfig):
         "pipeline": functools.partial(pipeline.run_capture, capture=capture, held_out_cameras=held_out),
         "prepare": functools.partial(pipeline.prepare, capture=capture, held_out_cameras=held_out),
         "track": track_prepared,
-        "estimate": functools.partial(pipeline.estimate, exact=exact, capture=capture, regions=regions),
+        "estimate": functools.partial(pipeline.estimate, exact=exact, capture=capture, regions=regions, fit=fit),
         "appearance": functools.partial(pipeline.appearance, capture=capture),
         "animate": functools.partial(pipeline.animate_capture, capture=capture),
         "evaluate": functools.partial(pipeline.evaluate_capture, capture=capture),

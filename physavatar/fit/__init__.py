@@ -6,6 +6,7 @@ The paper's §3.1–§3.3 and its evaluation, each a module:
 - :mod:`~physavatar.fit.tracking`: the garment mesh tracked through the capture (§3.1, Eqs. 1–4);
 - :mod:`~physavatar.fit.estimation`: the fabric's physical parameters from the tracked meshes (§3.2, Algorithm 1);
 - :mod:`~physavatar.fit.regions`: stiffness per garment region, fitted through the rollout's adjoint;
+- :mod:`~physavatar.fit.images`: the stiffness fitted to the capture's images through the rollout, no tracked mesh;
 - :mod:`~physavatar.fit.appearance`: the garment's albedo and the light by inverse rendering (§3.3, Eq. 8);
 - :mod:`~physavatar.fit.evaluation`: geometry scores against the truth (Chamfer distance, F-score; Table 2).
 
@@ -47,19 +48,32 @@ from physavatar.fit.gaussians import (
     project_gaussians,
     render_mesh_gaussians,
 )
+from physavatar.fit.images import ImageEstimate, ImageFitConfig, estimate_images, image_loss
 from physavatar.fit.regions import RegionEstimate, estimate_regions, garment_regions
-from physavatar.fit.tracking import TrackConfig, TrackResult, isometry_loss, mesh_neighbours, normal_loss, track
+from physavatar.fit.tracking import (
+    AvatarGaussians,
+    TrackConfig,
+    TrackResult,
+    fit_first_frame,
+    isometry_loss,
+    mesh_neighbours,
+    normal_loss,
+    track,
+)
 
 __all__ = [
     "FD_STEPS",
     "SYNTHETIC_FABRIC",
     "Appearance",
+    "AvatarGaussians",
     "EstimationProblem",
     "EstimationResult",
     "FabricParameters",
     "GarmentPixels",
     "GaussianAppearance",
     "GeometryScores",
+    "ImageEstimate",
+    "ImageFitConfig",
     "IterationRecord",
     "RegionEstimate",
     "Rollout",
@@ -73,11 +87,14 @@ __all__ = [
     "estimate_analytic",
     "estimate_appearance",
     "estimate_finite_differences",
+    "estimate_images",
     "estimate_regions",
     "face_frames",
+    "fit_first_frame",
     "gather_garment_pixels",
     "garment_regions",
     "geometry_scores",
+    "image_loss",
     "isometry_loss",
     "lbs_garment",
     "longest_edges",

@@ -18,6 +18,7 @@ signed term rewards stretching, so here it is the absolute difference (as in Dyn
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import sys
 import time
@@ -27,10 +28,19 @@ from dataclasses import dataclass, field
 import torch
 
 from kernels import backend
-from physavatar.capture import Capture
+from physavatar.capture import CameraRig, Capture
 from physavatar.fit.gaussians import GaussianAppearance, Subdivision, photometric_loss, render_mesh_gaussians
 
-__all__ = ["TrackConfig", "TrackResult", "isometry_loss", "mesh_neighbours", "normal_loss", "track"]
+__all__ = [
+    "AvatarGaussians",
+    "TrackConfig",
+    "TrackResult",
+    "fit_first_frame",
+    "isometry_loss",
+    "mesh_neighbours",
+    "normal_loss",
+    "track",
+]
 
 
 @dataclass(frozen=True)
@@ -179,6 +189,138 @@ def _concat(garment: GaussianAppearance, body: GaussianAppearance, colors: torch
     )
 
 
+@dataclass
+class AvatarGaussians:
+    """The dressed avatar's Gaussians and the cameras they are rendered into: the garment's on the ``4^L``
+    sub-triangles of each face, then the body's (one per face), as :func:`fit_first_frame` fits them.
+
+    Attributes:
+        garment: ``F·4^L`` garment Gaussians (children of a face next to each other).
+        body: ``Fb`` body Gaussians.
+        subdivision: the garment's subdivision (:class:`~physavatar.fit.gaussians.Subdivision`).
+        faces: ``[F·4^L + Fb, 3]`` the sub-triangles, then the body's triangles offset past the fine vertices.
+        world_to_camera: ``[C, 4, 4]`` view matrices; ``intrinsics`` ``[C, 4]`` px; ``width``, ``height`` px.
+        background: ``[3]`` colour behind the avatar (the capture's).
+    """
+
+    garment: GaussianAppearance
+    body: GaussianAppearance
+    subdivision: Subdivision
+    faces: torch.Tensor
+    world_to_camera: torch.Tensor
+    intrinsics: torch.Tensor
+    width: int
+    height: int
+    background: torch.Tensor
+
+    @classmethod
+    def initial(
+        cls,
+        rig: CameraRig,
+        first_vertices: torch.Tensor,
+        faces: torch.Tensor,
+        body_vertices: torch.Tensor,
+        body_faces: torch.Tensor,
+        subdivisions: int,
+        normal_scale: float,
+        background=(1.0, 1.0, 1.0),
+    ) -> AvatarGaussians:
+        """Grey Gaussians covering the garment's sub-triangles and the body's faces, on the vertices' device."""
+        device = first_vertices.device
+        v = first_vertices.shape[0]
+        fine = Subdivision.of(faces.long().to(device), v, subdivisions)
+        body_faces = body_faces.long().to(device)
+        return cls(
+            GaussianAppearance.initial(fine(first_vertices), fine.faces, normal_scale=normal_scale),
+            GaussianAppearance.initial(body_vertices, body_faces, normal_scale=normal_scale),
+            fine,
+            torch.cat([fine.faces, body_faces + fine.vertex_count(v)]),
+            rig.world_to_camera().to(device),
+            rig.intrinsics.to(device),
+            rig.width,
+            rig.height,
+            torch.as_tensor(background, dtype=torch.float32, device=device),
+        )
+
+    def render(
+        self, garment_vertices: torch.Tensor, body_vertices: torch.Tensor, colors: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``[C, H, W, 3]`` the avatar in every camera, the garment at ``[V, 3]`` ``garment_vertices`` (its
+        Gaussians' colours replaced by ``colors`` ``[F·4^L, 3]`` when given); differentiable in both."""
+        vertices = torch.cat([self.subdivision(garment_vertices), body_vertices.to(garment_vertices)])
+        appearance = _concat(self.garment, self.body, self.garment.colors if colors is None else colors)
+        return render_mesh_gaussians(
+            vertices, self.faces, appearance, self.world_to_camera, self.intrinsics, self.width, self.height,
+            self.background,
+        )[0]  # fmt: skip
+
+    def garment_coverage(self, garment_vertices: torch.Tensor, body_vertices: torch.Tensor) -> torch.Tensor:
+        """``[C, H, W]`` how much of each pixel the garment covers in front of the body: the avatar rendered with
+        the garment white and the body and background black (the rendered counterpart of a garment mask)."""
+        vertices = torch.cat([self.subdivision(garment_vertices), body_vertices.to(garment_vertices)])
+        white = torch.ones_like(self.garment.colors)
+        black = torch.zeros_like(self.body.colors)
+        appearance = _concat(self.garment, dataclasses.replace(self.body, colors=black), white)
+        image = render_mesh_gaussians(
+            vertices, self.faces, appearance, self.world_to_camera, self.intrinsics, self.width, self.height,
+            torch.zeros_like(self.background),
+        )[0]  # fmt: skip
+        return image[..., 0]
+
+    def detach(self) -> AvatarGaussians:
+        """A copy whose appearances are detached from any graph."""
+        return dataclasses.replace(self, garment=self.garment.detach(), body=self.body.detach())
+
+
+def fit_first_frame(
+    capture: Capture,
+    first_vertices: torch.Tensor,
+    faces: torch.Tensor,
+    body_vertices: torch.Tensor,
+    body_faces: torch.Tensor,
+    config: TrackConfig,
+) -> tuple[AvatarGaussians, float]:
+    """The first frame of :func:`track` (§3.1): the Gaussians' colours, in-plane scales and opacities (garment and
+    body) fitted to the capture's first images by ``config.first_iterations`` Adam steps on Eq. 1, the vertices held.
+
+    Args:
+        capture: the capture; only its first frame and its cameras are read.
+        first_vertices: ``[V, 3]`` garment vertices at the first frame, m, on the device to fit on.
+        faces: ``[F, 3]`` garment triangles.
+        body_vertices: ``[B, 3]`` body vertices at the first frame, m (``B`` may be 0).
+        body_faces: ``[Fb, 3]`` body triangles.
+        config: iterations, learning rates, subdivision and normal scale.
+
+    Returns:
+        The fitted, detached :class:`AvatarGaussians` and Eq. 1 at the last iteration.
+    """
+    device = first_vertices.device
+    x1 = first_vertices.to(torch.float64)
+    gaussians = AvatarGaussians.initial(
+        capture.rig, x1, faces, body_vertices.to(device, torch.float64), body_faces, config.face_subdivisions,
+        config.normal_scale, capture.background,
+    )  # fmt: skip
+    garment, body = gaussians.garment, gaussians.body
+    for appearance in (garment, body):
+        for p in (appearance.colors, appearance.log_scales, appearance.opacity_logits):
+            p.requires_grad_(True)
+    optimiser = torch.optim.Adam(
+        [
+            {"params": [garment.colors, body.colors], "lr": config.lr_colors},
+            {"params": [garment.log_scales, body.log_scales], "lr": config.lr_scales},
+            {"params": [garment.opacity_logits, body.opacity_logits], "lr": config.lr_opacity},
+        ]
+    )
+    target = capture.images[0].to(device, torch.float32)
+    body0 = body_vertices.to(device, torch.float64)
+    for _ in range(config.first_iterations):
+        optimiser.zero_grad(set_to_none=True)
+        loss = photometric_loss(gaussians.render(x1, body0), target, config.weight_l1)
+        loss.backward()
+        optimiser.step()
+    return gaussians.detach(), float(loss.detach())
+
+
 @backend.one_torch_thread_on_cpu()
 def track(
     capture: Capture,
@@ -231,27 +373,12 @@ def track(
         raise ValueError(f"faces must be [F, 3] indices into the {v} garment vertices")
 
     device = backend.torch_device()
-    rig = capture.rig
-    w2c = rig.world_to_camera().to(device)
-    intrinsics = rig.intrinsics.to(device)
-    width, height = rig.width, rig.height
-    background = torch.ones(3, dtype=torch.float32, device=device)
     faces = faces.long().to(device)
-    fine = Subdivision.of(faces, v, config.face_subdivisions)
-    all_faces = torch.cat([fine.faces, body_faces.long().to(device) + fine.vertex_count(v)])
     edges, degree, face_pairs = mesh_neighbours(faces, v)
     edges, degree, face_pairs = edges.to(device), degree.to(device), face_pairs.to(device)
     x1 = first_vertices.to(device, torch.float64)
     rest_lengths = torch.linalg.norm(x1[edges[:, 0]] - x1[edges[:, 1]], dim=1)
     bodies = body_frames.to(device, torch.float64)
-
-    garment = GaussianAppearance.initial(fine(x1), fine.faces, normal_scale=config.normal_scale)
-    body = GaussianAppearance.initial(bodies[0], body_faces.long().to(device), normal_scale=config.normal_scale)
-
-    def render(x: torch.Tensor, t: int, colors: torch.Tensor, garment_app, body_app):
-        vertices = torch.cat([fine(x), bodies[t]])
-        appearance = _concat(garment_app, body_app, colors)
-        return render_mesh_gaussians(vertices, all_faces, appearance, w2c, intrinsics, width, height, background)[0]
 
     out_vertices = [x1.clone()]
     out_colors = []
@@ -259,33 +386,11 @@ def track(
 
     # Frame 1: appearance only.
     start = time.perf_counter()
-    params = [
-        garment.colors,
-        garment.log_scales,
-        garment.opacity_logits,
-        body.colors,
-        body.log_scales,
-        body.opacity_logits,
-    ]
-    for p in params:
-        p.requires_grad_(True)
-    optimiser = torch.optim.Adam(
-        [
-            {"params": [garment.colors, body.colors], "lr": config.lr_colors},
-            {"params": [garment.log_scales, body.log_scales], "lr": config.lr_scales},
-            {"params": [garment.opacity_logits, body.opacity_logits], "lr": config.lr_opacity},
-        ]
-    )
-    target = capture.images[0].to(device, torch.float32)
-    for _ in range(config.first_iterations):
-        optimiser.zero_grad(set_to_none=True)
-        loss = photometric_loss(render(x1, 0, garment.colors, garment, body), target, config.weight_l1)
-        loss.backward()
-        optimiser.step()
-    garment, body = garment.detach(), body.detach()
-    colors = garment.colors.clone()
+    gaussians, first_loss = fit_first_frame(capture, x1, faces, bodies[0], body_faces, config)
+    fine = gaussians.subdivision
+    colors = gaussians.garment.colors.clone()
     out_colors.append(_per_face(colors, fine))
-    losses.append(loss.item())
+    losses.append(first_loss)
     errors.append(_error(x1, truth, 0))
     times.append(time.perf_counter() - start)
     _report(progress, 0, frames, losses[-1], errors[-1], times[-1])
@@ -307,7 +412,7 @@ def track(
         target = capture.images[t].to(device, torch.float32)
         for _ in range(config.iterations):
             optimiser.zero_grad(set_to_none=True)
-            loss = photometric_loss(render(x, t, colors, garment, body), target, config.weight_l1)
+            loss = photometric_loss(gaussians.render(x, bodies[t], colors), target, config.weight_l1)
             total = (
                 loss
                 + config.lambda_iso * isometry_loss(x, rest_lengths, edges, degree, config.iso_tolerance)
@@ -328,7 +433,7 @@ def track(
     return TrackResult(
         torch.stack(out_vertices).cpu(),
         torch.stack(out_colors).cpu(),
-        garment,
+        gaussians.garment,
         torch.tensor(losses),
         torch.tensor(errors) if truth is not None else torch.zeros(0),
         times,

@@ -12,6 +12,7 @@ from physavatar.pipeline.export import export_capture_folder
 from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
 from physavatar.pipeline.stages import (
     COARSE_MESH_TRACKING,
+    FITS,
     OUTPUTS,
     STAGES,
     PipelineConfig,
@@ -41,6 +42,7 @@ __all__ = [
     "CAPTURE_OUTPUTS",
     "CAPTURE_STAGES",
     "COARSE_MESH_TRACKING",
+    "FITS",
     "OUTPUTS",
     "SMOKE_NOTE",
     "STAGES",

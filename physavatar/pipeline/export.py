@@ -58,8 +58,9 @@ def export_capture_folder(
     if up not in ("y", "z"):
         raise ValueError(f"up must be 'y' or 'z', got {up!r}")
     if not 0.0 <= push_depth <= 0.05 or not 0.0 <= push_fraction <= 0.5:
-        raise ValueError(f"push_depth must lie in [0, 0.05] m and push_fraction in [0, 0.5], got {push_depth}, "
-                         f"{push_fraction}")
+        raise ValueError(
+            f"push_depth must lie in [0, 0.05] m and push_fraction in [0, 0.5], got {push_depth}, {push_fraction}"
+        )
     source = Path(out) / "capture"
     inputs_path = source / "inputs.npz"
     if not inputs_path.is_file():
@@ -105,4 +106,3 @@ def export_capture_folder(
     write_json(folder / "export.json", record, staging)
     write_json(folder / "transforms.json", {**meta, "up": up, "units": "m"}, staging, indent=1)
     return record
-

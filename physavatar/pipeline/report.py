@@ -57,7 +57,9 @@ def report_markdown(report: dict, out: Path) -> str:
         truth = est["truth"]
         lines += [
             "",
-            f"## Physics estimation (reference: {est['reference']} meshes; ρ fixed at {truth['density']:g} kg/m³)",
+            f"## Physics estimation (reference: {est['reference']}"
+            + ("" if est["reference"] == "images" else " meshes")
+            + f"; ρ fixed at {truth['density']:g} kg/m³)",
             "",
             "Only κ_s/ρ and κ_b/ρ are identifiable from geometry: scaling ρ, κ_s and κ_b together scales the "
             "incremental potential and leaves the motion unchanged.",
@@ -127,9 +129,12 @@ def plot_report(report: dict, folder: Path, staging: Staging) -> None:
         plt.close(fig)
 
 
-def plot_estimation(runs: dict, truth: FabricParameters | None, path: Path, staging: Staging) -> None:
-    """The estimators' iterations (``runs``: name → :class:`~physavatar.fit.EstimationResult`) against ``truth``
-    (``None`` for a capture without one), as one PNG at ``path``."""
+def plot_estimation(
+    runs: dict, truth: FabricParameters | None, path: Path, staging: Staging, loss: str = "Eq. 6 loss (m²)"
+) -> None:
+    """The estimators' iterations (``runs``: name → a result with ``history``, the parameters, and ``loss``, as
+    :class:`~physavatar.fit.EstimationResult`) against ``truth`` (``None`` for a capture without one), as one PNG at
+    ``path``; ``loss`` titles the loss's panel."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -143,7 +148,7 @@ def plot_estimation(runs: dict, truth: FabricParameters | None, path: Path, stag
     if truth is not None:
         axes[0].axhline(truth.kappa_s, color="k", ls="--", lw=0.8)
         axes[1].axhline(truth.kappa_b, color="k", ls="--", lw=0.8)
-    for ax, title in zip(axes, ("κ_s", "κ_b", "Eq. 6 loss (m²)"), strict=True):
+    for ax, title in zip(axes, ("κ_s", "κ_b", loss), strict=True):
         ax.set_title(title)
         ax.set_xlabel("iteration")
     axes[2].set_yscale("log")

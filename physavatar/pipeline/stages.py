@@ -73,6 +73,7 @@ from physavatar.fit.estimation import (
     rollout,
 )
 from physavatar.fit.evaluation import geometry_scores, lbs_garment
+from physavatar.fit.images import ImageFitConfig, estimate_images
 from physavatar.fit.regions import estimate_regions, garment_regions
 from physavatar.fit.tracking import TrackConfig, track
 from physavatar.garment import procedural_skirt, select_boundary
@@ -81,6 +82,7 @@ from physavatar.result_files import Staging, write_arrays, write_json, write_tex
 
 __all__ = [
     "COARSE_MESH_TRACKING",
+    "FITS",
     "OUTPUTS",
     "STAGES",
     "PipelineConfig",
@@ -105,6 +107,9 @@ BODY_COLOR = (0.78, 0.74, 0.68)
 
 
 STAGES = ("capture", "track", "estimate", "appearance", "animate", "evaluate")
+FITS = ("meshes", "images")
+"""What the estimate stage fits the simulation to: the tracked meshes (the paper's §3.2) or the capture's images."""
+IMAGE_FIT = "images_lbfgs_adjoint"
 OUTPUTS: dict[str, tuple[str, ...]] = {
     "capture": (
         "capture/",
@@ -161,6 +166,7 @@ class PipelineConfig:
         random_seed: seed of the "w/o physics" parameters, drawn log-uniformly from the paper's κ range.
         fd_iterations: Algorithm 1's iterations (paper: 100).
         lm_iterations: Levenberg–Marquardt's iteration cap.
+        image_iterations: L-BFGS iterations of the fit to the images (:mod:`physavatar.fit.images`).
         tracking: settings of the tracker (:data:`COARSE_MESH_TRACKING`).
         seed: seed of everything else random (occlusion directions).
         smoke_size: a smoke-size run (:meth:`smoke`): every stage runs, but its scores and estimates measure nothing
@@ -182,6 +188,7 @@ class PipelineConfig:
     random_seed: int = 3
     fd_iterations: int = 100
     lm_iterations: int = 12
+    image_iterations: int = 10
     tracking: TrackConfig = COARSE_MESH_TRACKING
     seed: int = 0
     smoke_size: bool = False
@@ -212,6 +219,7 @@ class PipelineConfig:
             skirt_segments=14,
             fd_iterations=2,
             lm_iterations=3,
+            image_iterations=2,
             tracking=dataclasses.replace(COARSE_MESH_TRACKING, first_iterations=30, iterations=15),
             smoke_size=True,
         )
@@ -238,7 +246,6 @@ def say(progress: Progress | None, stage: str, message: str) -> None:
     """Hand ``message`` about ``stage`` to ``progress``, if there is one."""
     if progress is not None:
         progress(stage, message)
-
 
 
 def stderr_progress(stage: str, message: str) -> None:
@@ -473,6 +480,7 @@ def estimate(
     staging: Staging = contextlib.nullcontext,
     capture: Path | None = None,
     regions: int | None = None,
+    fit: str = "meshes",
 ) -> Path:
     """Fit (κ_s, κ_b) at fixed ρ to the tracked meshes (or, with ``exact``, to the true ones) of the first
     ``config.frames`` frames; writes ``out/estimate``, each file through ``staging``. With ``regions``, also a
@@ -482,7 +490,17 @@ def estimate(
     Both of Algorithm 1 (forward differences + Adam) and the analytic Levenberg–Marquardt run from
     ``config.start``. On a user's ``capture`` (no truth) the report gives the recovered parameters and the fit's
     residual; on the synthetic experiment also their errors against the truth.
+
+    With ``fit="images"`` no tracked mesh is read: the parameters are fitted to the capture's images and masks
+    through the rollout (:func:`physavatar.fit.images.estimate_images`), from ``config.start``, and with
+    ``regions`` once more per sector from the global result.
     """
+    if fit not in FITS:
+        raise ValueError(f"fit must be one of {', '.join(FITS)}, got {fit!r}")
+    if fit == "images":
+        if exact:
+            raise ValueError("--exact fits the true meshes; the image fit reads no mesh: drop --exact or --fit images")
+        return _estimate_from_images(config, out, progress, staging, capture, regions)
     folder = Path(out) / "estimate"
     inputs = stage_inputs(out, capture, views=False)
     given = inputs.given
@@ -562,6 +580,72 @@ def estimate(
     write_json(folder / "estimate.json", report, staging)
     plot_estimation(runs, truth, folder / "estimate.png", staging)
     return folder
+
+
+def _estimate_from_images(
+    config: PipelineConfig,
+    out: Path,
+    progress: Progress | None,
+    staging: Staging,
+    capture: Path | None,
+    regions: int | None,
+) -> Path:
+    """:func:`estimate` with ``fit="images"``."""
+    folder = Path(out) / "estimate"
+    inputs = stage_inputs(out, capture)
+    film, given = inputs.film, inputs.given
+    _check_frames(film.images.shape[0], given["body_frames"].shape[0], "the capture", "the body frames")
+    frames = min(config.frames, film.images.shape[0])
+    film = dataclasses.replace(film, images=film.images[:frames], masks=film.masks[:frames])
+    truth = None if inputs.truth is None else FabricParameters(**inputs.truth["parameters"])
+    settings = ImageFitConfig(iterations=config.image_iterations, appearance=config.tracking)
+
+    def fit_images(initial: FabricParameters, sectors: torch.Tensor | None, label: str):
+        say(progress, "estimate", f"{label} from the images: {len(film.rig)} views, {frames} frames")
+        return estimate_images(
+            film, given["first_vertices"], given["faces"], given["body_frames"][:frames], given["body_faces"],
+            given["boundary_index"], given["boundary_targets"][:frames], config.fabric, initial, settings,
+            regions=sectors,
+            progress=lambda i, loss, s, b: say(
+                progress, "estimate", f"{label} {i}: κ_s {_values(s)}, κ_b {_values(b)}, loss {loss:.5f}"
+            ),
+        )  # fmt: skip
+
+    result = fit_images(config.start, None, "images")
+    final = result.parameters
+    report = {
+        "reference": "images",
+        "frames": frames,
+        "truth": None if truth is None else dataclasses.asdict(truth),
+        "methods": {
+            IMAGE_FIT: {
+                **result.to_dict(),
+                "iterations": result.evaluations,
+                "simulations": result.evaluations,
+                "final": dataclasses.asdict(final),
+                "ratio_errors": None
+                if truth is None
+                else {
+                    "kappa_s_over_rho": final.ratios[0] / truth.ratios[0] - 1.0,
+                    "kappa_b_over_rho": final.ratios[1] / truth.ratios[1] - 1.0,
+                },
+                "history": [dataclasses.asdict(p) for p in result.history],
+            }
+        },
+        "recovered": dataclasses.asdict(final),
+        "recovered_by": IMAGE_FIT,
+    }
+    if regions is not None:
+        sectors = garment_regions(given["first_vertices"], given["faces"], regions)
+        report["regions"] = fit_images(final, sectors, f"{regions} regions").to_dict()
+    folder.mkdir(parents=True, exist_ok=True)
+    write_json(folder / "estimate.json", report, staging)
+    plot_estimation({IMAGE_FIT: result}, truth, folder / "estimate.png", staging, loss="image loss (Eq. 1 + mask)")
+    return folder
+
+
+def _values(values: list[float]) -> str:
+    return " ".join(f"{v:.4f}" for v in values[:4]) + (" …" if len(values) > 4 else "")
 
 
 def appearance(

@@ -298,9 +298,7 @@ def evaluate_capture(
     }
     strips = [views.images[-1, 0]]
     for key, label in METHODS.items():
-        say(
-            progress, "evaluate", f"{label}: rendering {len(cameras)} held-out view(s) × {body_frames.shape[0]} frames"
-        )
+        say(progress, "evaluate", f"{label}: rendering {len(cameras)} held-out view(s) × {body_frames.shape[0]} frames")
         render = render_capture(
             sequences[key],
             faces,

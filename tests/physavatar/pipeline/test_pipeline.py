@@ -92,3 +92,18 @@ def test_estimate_by_regions_writes_each_regions_stiffness(experiment, tmp_path)
     assert len(regions["kappa_s"]) == len(regions["kappa_b"]) == 2 and sum(regions["faces_per_region"]) > 0
     assert regions["loss"][-1] <= regions["loss"][0]
     assert "regions" in result.stderr
+
+
+def test_estimate_from_the_images_reads_no_tracked_mesh(experiment, tmp_path):
+    out, _ = experiment
+    (tmp_path / "capture").symlink_to(out / "capture")  # no track folder: the image fit must not need one
+    result = _run("estimate", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--fit", "images")
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "estimate" / "estimate.json").read_text())
+    assert report["reference"] == "images" and report["recovered_by"] == "images_lbfgs_adjoint"
+    fit = report["methods"]["images_lbfgs_adjoint"]
+    assert fit["loss"][-1] <= fit["loss"][0] and set(fit["ratio_errors"]) == {"kappa_s_over_rho", "kappa_b_over_rho"}
+    assert report["recovered"] == fit["final"] and (tmp_path / "estimate" / "estimate.png").stat().st_size > 0
+    assert "from the images: 4 views, 6 frames" in result.stderr
+    refused = _run("estimate", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--fit", "images", "--exact")
+    assert refused.returncode != 0 and "drop --exact or --fit images" in refused.stderr

@@ -1,0 +1,322 @@
+"""The fabric's stiffness from the capture's images, through the physics: §3.1 and §3.2 collapsed into one chain.
+
+The paper estimates the fabric in two steps: it tracks the garment's mesh through the video (§3.1), then fits the
+simulator to the tracked meshes (§3.2, Eq. 6). Tracking costs an optimisation per frame, and its regularisers
+(Eq. 2's isometry above all) leave their mark on the meshes the physics is fitted to. Here the parameters reach
+the pixels directly::
+
+    θ = (log κ_s, log κ_b)  ─►  rollout (Eq. 5, T − 1 implicit steps)  ─►  mesh-aligned Gaussians
+        ─►  splatted into the capture's cameras  ─►  Eq. 1 against the images  +  w · (coverage − mask)²
+
+The Gaussians' colours, scales and opacities are those of the tracker's first frame (:func:`fit_first_frame`,
+the only appearance optimisation); after it no mesh is tracked. The gradient of the image loss reaches ``θ`` by
+two reverse passes chained: torch's through the rasteriser to the ``[T, V, 3]`` frames, then the rollout's adjoint
+(:class:`physavatar.cloth.ClothRollout`, ``docs/adjoint.md``) from the frames to the parameters — one backward
+solve per step whatever the number of parameters, so the stiffness can vary per garment region as cheaply.
+The frames are rendered one at a time and their image gradients summed into one ``[T, V, 3]`` load, so memory
+holds one frame's rasterisation, never the whole video's.
+
+The mask term compares the capture's garment masks with the garment's rendered coverage (the avatar rendered with
+a white garment in front of a black body; :meth:`AvatarGaussians.garment_coverage`): it pulls on the silhouette,
+where the photometric term sees little when garment and background colours are alike.
+
+As in :mod:`physavatar.fit.regions`, ``ρ`` stays at its initial value: gravity and inertia scale together with it,
+so only the ratios ``κ/ρ`` are identifiable (:mod:`physavatar.fit.estimation`). L-BFGS with a strong-Wolfe line
+search minimises the loss over the parameters' logarithms, each evaluation one rollout forward, ``T − 1`` frames
+rendered forward and back, and one adjoint.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from kernels import backend
+from physavatar.capture import Capture
+from physavatar.cloth import ClothConfig, RolloutScene, rollout
+from physavatar.fit.estimation import FabricParameters
+from physavatar.fit.gaussians import photometric_loss
+from physavatar.fit.tracking import AvatarGaussians, TrackConfig, fit_first_frame
+
+__all__ = ["ImageEstimate", "ImageFitConfig", "estimate_images", "image_loss"]
+
+F64 = torch.float64
+REJECTED = 10.0
+"""The loss, relative to the start's, that a line-search trial gets when its rollout does not converge (a step too
+far: the strong-Wolfe search extrapolates up to tenfold), with a zero gradient: the search steps back."""
+
+
+@dataclass(frozen=True)
+class ImageFitConfig:
+    """Settings of :func:`estimate_images`.
+
+    Attributes:
+        iterations: L-BFGS iterations (each one or a few evaluations; at most ``2 × iterations`` evaluations).
+        weight_mask: ``w``, the weight of the mean squared difference between the garment's rendered coverage and
+            the capture's garment mask, beside Eq. 1 (0 turns the mask term off). Squared, not absolute: the
+            coverage of splatted Gaussians is soft where a mask is binary, and the absolute difference's kinks at
+            every edge pixel stalled the line search.
+        appearance: the first frame's appearance fit and the Gaussians' layout (:class:`TrackConfig`: its
+            ``first_iterations``, learning rates, ``weight_l1``, ``face_subdivisions`` and ``normal_scale``).
+    """
+
+    iterations: int = 10
+    weight_mask: float = 1.0
+    appearance: TrackConfig = TrackConfig()
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise ValueError(f"iterations ({self.iterations}) must be at least 1")
+        if not (math.isfinite(self.weight_mask) and self.weight_mask >= 0.0):
+            raise ValueError(f"weight_mask ({self.weight_mask}) must be a finite number >= 0")
+
+
+@dataclass(frozen=True)
+class ImageEstimate:
+    """What :func:`estimate_images` found.
+
+    Attributes:
+        density: ``ρ`` held fixed, kg/m³.
+        kappa_s, kappa_b: ``[R]`` float64 factors, one per region (``R = 1``: the global fit).
+        regions: ``[F]`` int64 region of each face, or ``None`` for the global fit.
+        loss: the image loss at the start, at each evaluation (line-search trials included) and at the end.
+        history: the (global) parameters of each entry of ``loss``.
+        evaluations: image losses evaluated (all but the first and the last with a backward).
+        appearance_seconds: the first frame's appearance fit, s.
+        seconds: the whole estimate, appearance included, s.
+    """
+
+    density: float
+    kappa_s: torch.Tensor
+    kappa_b: torch.Tensor
+    regions: torch.Tensor | None
+    loss: list[float]
+    history: list[FabricParameters]
+    evaluations: int
+    appearance_seconds: float
+    seconds: float
+
+    @property
+    def parameters(self) -> FabricParameters:
+        """The global fit as :class:`FabricParameters` (the face-weighted geometric mean of the regions')."""
+        return _global(self.density, self.kappa_s, self.kappa_b, self.regions)
+
+    def to_dict(self) -> dict:
+        """The estimate as JSON-ready values."""
+        out = {
+            "density": self.density,
+            "kappa_s": self.kappa_s.tolist(),
+            "kappa_b": self.kappa_b.tolist(),
+            "loss": self.loss,
+            "evaluations": self.evaluations,
+            "appearance_seconds": self.appearance_seconds,
+            "seconds": self.seconds,
+        }
+        if self.regions is not None:
+            out["faces_per_region"] = torch.bincount(self.regions, minlength=len(self.kappa_s)).tolist()
+        return out
+
+
+def _global(density: float, kappa_s: torch.Tensor, kappa_b: torch.Tensor, regions: torch.Tensor | None):
+    """One :class:`FabricParameters` for per-region factors: their face-weighted geometric mean."""
+    kappa_s, kappa_b = kappa_s.detach().cpu(), kappa_b.detach().cpu()
+    if regions is None:
+        return FabricParameters(density, float(kappa_s[0]), float(kappa_b[0]))
+    share = torch.bincount(regions.cpu(), minlength=len(kappa_s)).to(F64) / regions.numel()
+    return FabricParameters(density, *(float(torch.exp((share * k.log()).sum())) for k in (kappa_s, kappa_b)))
+
+
+def image_loss(
+    gaussians: AvatarGaussians,
+    frames: torch.Tensor,
+    body_frames: torch.Tensor,
+    images: torch.Tensor,
+    masks: torch.Tensor,
+    weight_l1: float,
+    weight_mask: float,
+    backward: bool = False,
+) -> tuple[float, torch.Tensor | None]:
+    """The image loss of a garment sequence, and its gradient in the garment's vertices.
+
+    ``L = 1/(T − 1) Σ_{t ≥ 1} [Eq. 1(render_t, image_t) + w · mean (coverage_t − mask_t)²]``; frame 0 is the start
+    the appearance was fitted on. Frames are rendered one at a time; with ``backward`` each one's gradient is
+    accumulated before the next is rendered.
+
+    Args:
+        gaussians: the avatar's Gaussians and cameras (:func:`fit_first_frame`).
+        frames: ``[T, V, 3]`` garment vertices per frame, m (read only: the gradient is returned, not propagated).
+        body_frames: ``[T, B, 3]`` body vertices per frame, m.
+        images: ``[T, C, H, W, 3]`` the capture's images in [0, 1], on the Gaussians' device.
+        masks: ``[T, C, H, W]`` float garment masks in {0, 1}, same device.
+        weight_l1: ``λ`` of Eq. 1.
+        weight_mask: ``w``.
+        backward: also return ``∂L/∂frames`` ``[T, V, 3]`` (zero at frame 0).
+
+    Returns:
+        ``(L, ∂L/∂frames or None)``.
+    """
+    count = frames.shape[0]
+    leaf = frames.detach().requires_grad_(backward)
+    total = 0.0
+    for t in range(1, count):
+        with torch.set_grad_enabled(backward):
+            loss = photometric_loss(gaussians.render(leaf[t], body_frames[t]), images[t], weight_l1)
+            if weight_mask > 0.0:
+                coverage = gaussians.garment_coverage(leaf[t], body_frames[t])
+                loss = loss + weight_mask * (coverage - masks[t]).square().mean()
+            loss = loss / (count - 1)
+        if backward:
+            loss.backward()
+        total += float(loss.detach())
+    if not backward:
+        return total, None
+    return total, leaf.grad if leaf.grad is not None else torch.zeros_like(leaf)
+
+
+def estimate_images(
+    capture: Capture,
+    first_vertices: torch.Tensor,
+    faces: torch.Tensor,
+    body_frames: torch.Tensor,
+    body_faces: torch.Tensor,
+    boundary_index: torch.Tensor,
+    boundary_targets: torch.Tensor,
+    fabric: ClothConfig,
+    initial: FabricParameters,
+    config: ImageFitConfig | None = None,
+    regions: torch.Tensor | None = None,
+    gaussians: AvatarGaussians | None = None,
+    device: str | None = None,
+    progress: Callable[[int, float, list[float], list[float]], None] | None = None,
+) -> ImageEstimate:
+    """Fit ``κ_s`` and ``κ_b`` (globally, or per region) to the capture's images through the garment's rollout.
+
+    Args:
+        capture: ``T`` frames of ``C`` views, their garment masks and cameras; one step of ``1 / fps`` per frame.
+        first_vertices: ``[V, 3]`` the garment at the first frame, m: the rollout's start (at rest, zero velocity)
+            and its rest shape.
+        faces: ``[F, 3]`` garment triangles.
+        body_frames: ``[T, B, 3]`` body vertices per frame, m; ``body_faces`` ``[Fb, 3]`` its triangles.
+        boundary_index: ``[D]`` Dirichlet garment vertices; ``boundary_targets`` ``[T, D, 3]`` their positions, m.
+        fabric: the simulator's settings (its density, stiffness factors are replaced).
+        initial: ``ρ`` (held) and the starting ``κ_s``, ``κ_b`` (of every region).
+        config: iterations, mask weight and the appearance fit.
+        regions: ``[F]`` int64 region of each face, ``0..R−1`` (:func:`physavatar.fit.garment_regions`); ``None``
+            fits one global pair.
+        gaussians: the avatar's Gaussians when they are known (e.g. the tracker's); ``None`` fits them to the first
+            frame (:func:`fit_first_frame` with ``config.appearance``). Their cameras are used, not the capture's.
+        device: ``"cpu"`` or ``"cuda"``; ``None`` keeps the backend's device or picks the default.
+        progress: called after each evaluation with ``(evaluation, loss, κ_s per region, κ_b per region)``.
+
+    Returns:
+        :class:`ImageEstimate`.
+
+    Raises:
+        ValueError: frame counts of the capture, body and targets that differ; ``regions`` not one integer per face
+            or with an empty region; a rollout step that does not converge.
+    """
+    config = config or ImageFitConfig()
+    frames = capture.images.shape[0]
+    for name, sequence in (("body_frames", body_frames), ("boundary_targets", boundary_targets)):
+        if sequence.shape[0] != frames:
+            raise ValueError(
+                f"the capture has {frames} frames but {name} has {sequence.shape[0]}; the capture and the body "
+                "motion must come from one recording"
+            )
+    if frames < 2:
+        raise ValueError(f"the capture must hold at least 2 frames (a start and one step), got {frames}")
+    faces = torch.as_tensor(faces).long()
+    count = 1
+    if regions is not None:
+        regions = torch.as_tensor(regions).reshape(-1)
+        if regions.numel() != faces.shape[0] or regions.dtype.is_floating_point or int(regions.min()) < 0:
+            raise ValueError(f"regions must hold one non-negative integer per garment face ({faces.shape[0]})")
+        regions = regions.long()
+        count = int(regions.max()) + 1
+        if bool((torch.bincount(regions, minlength=count) == 0).any()):
+            raise ValueError(f"regions must number 0..R-1 with every region holding a face; got {regions.unique()}")
+    backend.init(device)
+    dev = backend.torch_device()
+    start = time.perf_counter()
+    x0 = torch.as_tensor(first_vertices).to(dev, F64)
+    body = torch.as_tensor(body_frames).to(dev, F64)
+    body_faces = torch.as_tensor(body_faces).long().to(dev)
+    targets = torch.as_tensor(boundary_targets).to(dev, F64)
+    if gaussians is None:
+        with backend.one_torch_thread_on_cpu():
+            gaussians, _ = fit_first_frame(capture, x0, faces.to(dev), body[0], body_faces, config.appearance)
+    appearance_seconds = time.perf_counter() - start
+    images = capture.images.to(dev, torch.float32)
+    masks = capture.masks.to(dev, torch.float32)
+    scene = RolloutScene(
+        x0, faces.to(dev), body_faces, torch.as_tensor(boundary_index).long().to(dev), 1.0 / capture.fps, fabric
+    )
+    index = None if regions is None else regions.to(dev)
+    log_s = torch.full((count,), math.log(initial.kappa_s), dtype=F64, device=dev, requires_grad=True)
+    log_b = torch.full((count,), math.log(initial.kappa_b), dtype=F64, device=dev, requires_grad=True)
+
+    def simulate() -> torch.Tensor:
+        if index is None:
+            return rollout(scene, initial.density, log_s.exp()[0], log_b.exp()[0], x0, body, targets)
+        fields = {"kappa_s_field": log_s.exp()[index], "kappa_b_field": log_b.exp()[index]}
+        return rollout(scene, initial.density, 1.0, 1.0, x0, body, targets, **fields)
+
+    def evaluate(backward: bool) -> float:
+        with torch.set_grad_enabled(backward):
+            sequence = simulate()
+        with backend.one_torch_thread_on_cpu():
+            loss, grad = image_loss(
+                gaussians, sequence, body, images, masks, config.appearance.weight_l1, config.weight_mask, backward
+            )
+        if backward:
+            sequence.backward(grad * scale)
+        return loss
+
+    scale = 1.0
+    with torch.no_grad():
+        first = evaluate(False)
+    scale = 1.0 / max(first, 1e-300)  # L-BFGS's tolerances are absolute: fit the loss relative to where it starts
+    history = [first]
+
+    def now() -> FabricParameters:
+        return _global(float(initial.density), log_s.exp(), log_b.exp(), regions)
+
+    parameters = [now()]
+    optimiser = torch.optim.LBFGS(
+        [log_s, log_b], lr=1.0, max_iter=config.iterations, max_eval=2 * config.iterations, tolerance_grad=1e-9,
+        tolerance_change=1e-12, history_size=10, line_search_fn="strong_wolfe",
+    )  # fmt: skip
+
+    def closure() -> torch.Tensor:
+        optimiser.zero_grad()
+        try:
+            loss = evaluate(True)
+        except ValueError as error:  # a line-search trial too far out for the steps to converge: reject it
+            if "did not converge" not in str(error):
+                raise
+            return torch.tensor(REJECTED, dtype=F64)
+        history.append(loss)
+        parameters.append(now())
+        if progress is not None:
+            progress(len(history) - 1, loss, log_s.detach().exp().tolist(), log_b.detach().exp().tolist())
+        return torch.tensor(loss * scale, dtype=F64)
+
+    optimiser.step(closure)
+    with torch.no_grad():
+        history.append(evaluate(False))  # where the last line search left the parameters
+    parameters.append(now())
+    return ImageEstimate(
+        float(initial.density),
+        log_s.detach().exp().cpu(),
+        log_b.detach().exp().cpu(),
+        None if regions is None else regions.cpu(),
+        history,
+        parameters,
+        len(history),
+        appearance_seconds,
+        time.perf_counter() - start,
+    )
