@@ -12,6 +12,12 @@ Adam iterations of vertices and colours against 8 views at 256×256; smoke: 4 vi
 ``estimate``: the analytic Levenberg–Marquardt fit of (κ_s, κ_b) to 24 exact frames of the skirt on the walking
 mannequin (smoke: 6 frames of a coarser skirt), from κ_s = 2, κ_b = 0.5; ``extra`` holds the time at which both
 identifiable ratios came within 5 % of the truth and the final errors.
+
+``estimate_images``: the same fit from the images instead of meshes (:func:`physavatar.fit.images.estimate_images`):
+the skirt simulated in the truth's fabric on the walk and filmed as the pipeline films it (24 frames, 8 views at
+256×256; smoke: 6 frames of the coarser skirt, 4 views at 64×64), then the first frame's appearance fit and
+L-BFGS through the rollout's adjoint from κ_s = 2, κ_b = 0.5, no tracked mesh. ``extra`` holds the final ratio
+errors, the evaluations, the rejected line-search trials and the appearance fit's share of the time.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ from physavatar.capture import CameraRig, Lighting, garment_albedo, render_captu
 from physavatar.drive import BodyDriver
 from physavatar.fit.estimation import SYNTHETIC_FABRIC, EstimationProblem, FabricParameters, estimate_analytic, rollout
 from physavatar.fit.gaussians import GaussianAppearance, face_frames, project_gaussians
+from physavatar.fit.images import ImageFitConfig, estimate_images
 from physavatar.fit.tracking import track
 from physavatar.garment import procedural_skirt, select_boundary
 from physavatar.pipeline import COARSE_MESH_TRACKING
@@ -180,6 +187,51 @@ def bench_estimate(device: str, size: str) -> Case:
         run=run,
         reference=None,
         params={"frames": frames, "vertices": int(skirt.vertices.shape[0]), "start": [2.0, 0.5], "truth": [1.0, 1.0]},
+        work=1.0,
+        unit="fits/s",
+        extra=extra,
+    )
+
+
+@workload("estimate_images", "fit of (kappa_s, kappa_b) to the images through the rollout's adjoint, no tracking")
+def bench_estimate_images(device: str, size: str) -> Case:
+    smoke = size == "smoke"
+    frames, views, pixels = (6, 4, 64) if smoke else (24, 8, 256)
+    body, skirt = _dressed(*((5, 14) if smoke else (10, 28)))
+    clip = walk(body.skeleton, fps=25.0)
+    boundary = select_boundary(skirt, body, mode="waist")
+    result = simulate(skirt, body, clip, config=SYNTHETIC_FABRIC, frames=frames - 1, boundary=boundary, progress=False)
+    rig = CameraRig.ring(views, 2.2, 0.25, (0.0, 0.86, 0.0), pixels, pixels, fov_deg=24.0, phase_deg=20.0)
+    albedo = garment_albedo(skirt.vertices, skirt.faces, pattern="checks", bands=6)
+    film = render_capture(
+        result.garment_frames, result.garment_faces, result.body_frames, result.body_faces, albedo,
+        (0.78, 0.74, 0.68), rig, Lighting(), 25.0, ao_samples=4 if smoke else 16,
+    )  # fmt: skip
+    truth = FabricParameters.from_config(SYNTHETIC_FABRIC)
+    start = FabricParameters(truth.density, 2.0, 0.5)
+    tracking = dataclasses.replace(COARSE_MESH_TRACKING, first_iterations=30) if smoke else COARSE_MESH_TRACKING
+    config = ImageFitConfig(iterations=2 if smoke else 15, appearance=tracking)
+    index = result.boundary_index
+    extra: dict = {}
+
+    def run():
+        fit = estimate_images(
+            film, result.garment_frames[0], skirt.faces, result.body_frames, body.faces, index,
+            result.garment_frames[:, index], SYNTHETIC_FABRIC, start, config,
+        )  # fmt: skip
+        extra.update(
+            final_ratio_errors=[a / b - 1.0 for a, b in zip(fit.parameters.ratios, truth.ratios, strict=True)],
+            evaluations=fit.evaluations,
+            rejected=len(fit.rejected),
+            appearance_seconds=fit.appearance_seconds,
+        )
+        return fit
+
+    return Case(
+        run=run,
+        reference=None,
+        params={"frames": frames, "views": views, "pixels": f"{pixels}x{pixels}", "start": [2.0, 0.5],
+                "truth": [1.0, 1.0]},  # fmt: skip
         work=1.0,
         unit="fits/s",
         extra=extra,

@@ -188,7 +188,7 @@ class PipelineConfig:
     random_seed: int = 3
     fd_iterations: int = 100
     lm_iterations: int = 12
-    image_iterations: int = 10
+    image_iterations: int = 15
     tracking: TrackConfig = COARSE_MESH_TRACKING
     seed: int = 0
     smoke_size: bool = False
