@@ -292,8 +292,8 @@
       fillSelect(element("motion"), controls.motions, controls.motion);
       fillSelect(element("preset"), controls.presets.concat(controls.presets.includes(controls.preset) ? [] : [controls.preset]), controls.preset);
       fillSelect(element("render_mode"), controls.render_modes, controls.render_mode);
-      element("play").disabled = controls.playing;
-      element("pause").disabled = !controls.playing;
+      element("play").classList.toggle("active", controls.playing);
+      element("pause").classList.toggle("active", !controls.playing);
       return;
     }
     for (const [name, slider] of Object.entries(sliders)) {
