@@ -10,7 +10,7 @@ s with the body moving between two poses of the motion and the waistband on its 
 and the pins are springs of the step's potential (:mod:`physavatar.cloth.picking`).
 
 Garment size: on CUDA the DiffCloth skirt ``skirt7271`` of the shared data folder (3757 vertices) where present; on
-the CPU the embedded procedural skirt at :data:`CPU_SKIRT` (8 rings of 20 vertices), which keeps a frame near 0.1 s
+the CPU the embedded procedural skirt at :data:`CPU_SKIRT` (6 rings of 16 vertices), which keeps a frame under 0.1 s
 on two cores (figures in ``docs/benchmarks.md``, workload ``viewer_frame_avatar``). :attr:`AvatarSimulation.notes`
 says which was chosen and why.
 """
@@ -58,8 +58,8 @@ AVATAR_MOTIONS = ("walk", "turn", "raise", "jump")
 loops without a jump) and loops over two gait cycles after its fade-in; ``turn``, ``raise`` and ``jump`` end in the
 pose they start in and loop whole."""
 
-CPU_SKIRT = (8, 20)
-"""``(rings, segments)`` of the procedural skirt the session wears on the CPU (160 vertices)."""
+CPU_SKIRT = (6, 16)
+"""``(rings, segments)`` of the procedural skirt the session wears on the CPU (96 vertices)."""
 
 GARMENT_RGB = (0.80, 0.22, 0.20)
 """The garment's colour."""
@@ -72,6 +72,10 @@ _FPS = 25.0  # frames per second of the motions; Δt = 1 / 25 s as the paper's 0
 _WALK_PERIOD = 28  # frames of one gait cycle: cadence 25 / 28 cycles per second
 _SCRUB_FRAMES_PER_STEP = 2.0  # a scrubbed body travels to its new pose this fast, so no step sweeps it far
 _SPEED_RANGE = (0.0, 4.0)
+_CPU_CANDIDATE_MARGIN = 0.01
+"""m, the contact candidates' reach beyond each vertex's predicted path on the CPU (:attr:`ClothConfig.
+candidate_margin`; the solver's 2 mm was the fastest for the converged walk): a dragged garment leaves a 2 mm reach
+often, and each search costs a frame's tenth; at 1 cm the dragged skirt took 2.6 searches a frame instead of 5.8."""
 
 
 @dataclass(frozen=True)
@@ -133,14 +137,18 @@ class AvatarConfig:
         skirt: ``(rings, segments)`` of the procedural skirt.
         motion: the motion at start (:data:`AVATAR_MOTIONS`).
         fabric: the fabric at start (:data:`FABRIC_PRESETS`).
-        newton_iterations: most Newton iterations a frame (the solver's own default: a frame converges, so the
-            body reaches its pose; under a lower cap a step may end with the body short of it, and the next one
-            sweeps on from there, :attr:`AvatarSimulation.body_lag`).
+        newton_iterations: most Newton iterations a frame; ``None``: 6 on the CPU (an interactive cap, as the
+            PIE-NeRF bodies' one iteration: with the garment dragged across the walking legs a converged frame took
+            22 iterations on average, a capped one 6, a quarter of the time), the solver's 50 on CUDA. Every iterate is
+            intersection-free, so a capped step keeps the contact guarantees; it may end with the body short of its
+            pose, and then the body is shown where the garment's collider got to and the next step sweeps on from
+            there (:attr:`AvatarSimulation.body_lag`).
         collider_reach: the garment collides with the body's triangles that have a vertex within this distance
             of the garment at rest, m; ``None``: 0.25 m on the CPU (the hips, thighs and hands that a skirt meets:
             the candidate search, most of a frame there, sees 6k of the body's 15k triangles), the whole body on
             CUDA. The contact view's counter of vertices inside the body always tests the whole body.
-        drag_stiffness: drag spring ``k``, N/m; ``None`` → 50 × the garment's weight per metre.
+        drag_stiffness: drag spring ``k``, N/m; ``None`` → 20 × the garment's weight per metre (a stiffer spring
+            on one vertex pulls a sharper tent into the cloth, which takes Newton more iterations).
         drag_damping: drag damper ``c`` as a time, s (``c = k × drag_damping``).
         drag_max_force: largest drag force, in garment weights.
         pin_stiffness: a pin's spring, in drag stiffnesses.
@@ -151,7 +159,7 @@ class AvatarConfig:
     skirt: tuple[int, int] = CPU_SKIRT
     motion: str = "walk"
     fabric: str = "cotton"
-    newton_iterations: int = 50
+    newton_iterations: int | None = None
     collider_reach: float | None = None
     drag_stiffness: float | None = None
     drag_damping: float = 0.02
@@ -164,8 +172,10 @@ class AvatarConfig:
             raise ValueError(f"unknown motion {self.motion!r}; valid: {', '.join(AVATAR_MOTIONS)}")
         if self.fabric not in FABRIC_PRESETS:
             raise ValueError(f"unknown fabric {self.fabric!r}; valid: {', '.join(FABRIC_PRESETS)}")
-        if not (isinstance(self.newton_iterations, int) and self.newton_iterations >= 1):
-            raise ValueError(f"newton_iterations must be an integer >= 1, got {self.newton_iterations!r}")
+        if self.newton_iterations is not None and not (
+            isinstance(self.newton_iterations, int) and self.newton_iterations >= 1
+        ):
+            raise ValueError(f"newton_iterations must be an integer >= 1 (or None), got {self.newton_iterations!r}")
         if self.drag_stiffness is not None and not 0.0 < self.drag_stiffness < math.inf:
             raise ValueError(f"drag_stiffness must be a finite number > 0 N/m (or None), got {self.drag_stiffness!r}")
         for name in ("drag_max_force", "pin_stiffness"):
@@ -297,6 +307,7 @@ class AvatarSimulation:
         remap = torch.full((self.body.vertices.shape[0],), -1, dtype=torch.int64)
         remap[self.collider_vertices] = torch.arange(self.collider_vertices.numel())
         self.collider_faces = remap[faces]
+        self._collider_index = self.collider_vertices.to(device)
         if math.isfinite(reach):
             self.notes = (
                 *self.notes,
@@ -307,12 +318,14 @@ class AvatarSimulation:
         self._progress(progress, "skinning the motion", 0.5)
         self.motion = config.motion
         self._clip_of(config.motion)
+        self.solver_device = device
+        self.newton_iterations = config.newton_iterations or (6 if device.type == "cpu" else 50)
         self.fabric_name = config.fabric
         self.fabric = FABRIC_PRESETS[config.fabric]
         self._progress(progress, "building the solver", 0.7)
         self._make_solver()
         weight = float(self.solver.potential.mass.sum()) * 9.81
-        stiffness = config.drag_stiffness or 50.0 * weight
+        stiffness = config.drag_stiffness or 20.0 * weight
         self.drag = GarmentDrag(
             self.mesh_faces,
             stiffness=stiffness,
@@ -360,7 +373,8 @@ class AvatarSimulation:
             kappa_b=f.kappa_b,
             friction=f.friction,
             thickness=f.thickness,
-            max_newton_iterations=self.config.newton_iterations,
+            max_newton_iterations=self.newton_iterations,
+            candidate_margin=_CPU_CANDIDATE_MARGIN if self.solver_device.type == "cpu" else None,
         )
 
     def _make_solver(self) -> None:
@@ -423,6 +437,9 @@ class AvatarSimulation:
             reached = self.solver.loop.positions()[self.solver.vertex_count :]
             self.body_lag = float((reached - collider_end).abs().max())
             self._collider_now = reached.clone()
+            # the body as the garment saw it: the pose, with the collider where the step left it
+            body_end = body_end.clone()
+            body_end[self._collider_index] = reached
             self.frame, self.body_now, self.time = wrapped, body_end, self.time + self.dt
             self.last_report = report
             self._account(report)
@@ -619,6 +636,6 @@ class AvatarSimulation:
             "boundary_vertices": int(self.boundary.numel()),
             "motion": self.motion,
             "fabric": {"name": self.fabric_name, **asdict(self.fabric)},
-            "newton_iterations_cap": self.config.newton_iterations,
+            "newton_iterations_cap": self.newton_iterations,
             "notes": list(self.notes),
         }

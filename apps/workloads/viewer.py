@@ -12,8 +12,8 @@ Throughput is frames per second of step + render; the record also gives the medi
 :class:`physavatar.session.AvatarSimulation` (the mannequin walking, the front of the hem dragged by a target that
 sways sideways by ±12 cm over 2 s, as a hand on the mouse) and one mesh update as the meshcat viewer makes it (the
 garment's and the mannequin's vertex buffers packed as the page's ``set_vertices``, the tint, the contact counters).
-The garment is the session's choice for the device at ``paper`` size (the procedural skirt of 160 vertices on the
-CPU, skirt7271 on CUDA), the 96-vertex procedural skirt at ``smoke`` size and skirt7271 at ``large`` size. The
+The garment is the session's choice for the device at ``paper`` size (the procedural skirt of 96 vertices on the
+CPU, skirt7271 on CUDA), the 60-vertex procedural skirt at ``smoke`` size and skirt7271 at ``large`` size. The
 record carries the median step and update (``step_median_s``, ``update_median_s``), the session's time breakdown,
 the Newton iterations and the most vertices found inside the body over the timed frames (``vertices_inside_body``,
 0 by the barrier's guarantee).
@@ -100,7 +100,7 @@ def _packed(positions: torch.Tensor) -> bytes:
 
 @workload("viewer_frame_avatar", "the avatar viewer's frame while dragging: one garment step + one mesh update")
 def bench_viewer_frame_avatar(device: str, size: str) -> Case:
-    skirt = (6, 16) if size == "smoke" else AvatarConfig().skirt
+    skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
     simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
     x = simulation.state.x.cpu()
     front = x[:, 2] > x[:, 2].mean()
