@@ -3,7 +3,7 @@
     python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|avatar|PATH] [--device cpu|cuda]
                         [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
-                        [--frame-budget-ms 33.3] [--garment NAME|PATH] [--motion walk|turn|raise|jump]
+                        [--frame-budget-ms 33.3] [--garment NAME|PATH] [--motion walk|turn|raise|jump|BVH]
     python -m apps.demo --build-nerf-asset
 
 ``--build-nerf-asset`` fits the plant's coarse NeRF again with the project's own fitting code and writes the copy
@@ -38,15 +38,15 @@ background; for the other scenes the first fit takes longer than a start may tak
 mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
 ``--scene avatar`` dresses the procedural mannequin in a garment (:class:`physavatar.session.AvatarSimulation`):
-the mannequin plays a motion (``--motion``: walk, turn, raise, jump; each loops) and the garment is simulated by
-PhysAvatar's Codim-IPC cloth solver, one implicit step a frame. The panel plays, pauses and scrubs the motion and
-sets its speed; sets the fabric (density, κs, κb, friction) or a preset (silk, cotton, denim, leather,
-:data:`physavatar.session.FABRIC_PRESETS`); and shows the contact: garment vertices within the barrier's reach of
-the body tinted, the smallest distances to the body and to itself, and the count of vertices inside the body
-(0: the barrier keeps them out). The garment is dragged as the bodies are (a clamped spring on the picked vertex,
-a term of the step's potential) and a clicked vertex can be pinned. ``--garment`` picks it: ``procedural``, a
-shared garment's name (``skirt1252``, ``skirt7271``) or an OBJ/PLY path; by default the full ``skirt7271`` on
-CUDA and, on the CPU, a procedural skirt small enough to stay interactive (the page says which).
+the mannequin plays a motion (``--motion``: walk, turn, raise, jump or a BVH file; each loops) and the garment
+is simulated by PhysAvatar's Codim-IPC cloth solver, one implicit step a frame. The panel plays, pauses and
+scrubs the motion and sets its speed; sets the fabric (density, κs, κb, friction) or a preset (silk, cotton,
+denim, leather, :data:`physavatar.session.FABRIC_PRESETS`); and shows the contact: garment vertices within the
+barrier's reach of the body tinted, the smallest distances to the body and to itself, and the count of vertices
+inside the body (0: the barrier keeps them out). The garment is dragged as the bodies are (a clamped spring on
+the picked vertex, a term of the step's potential) and a clicked vertex can be pinned. ``--garment`` picks it:
+``procedural``, a shared garment's name (``skirt1252``, ``skirt7271``) or an OBJ/PLY path; by default the full
+``skirt7271`` on CUDA and, on the CPU, a procedural skirt small enough to stay interactive (the page says which).
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
@@ -103,7 +103,11 @@ def main(argv: list[str] | None = None) -> int:
         help="avatar scene: procedural, a shared garment (skirt1252, skirt7271) or an OBJ/PLY path (default: "
         "skirt7271 on CUDA, a small procedural skirt on the CPU)",
     )
-    parser.add_argument("--motion", choices=AVATAR_MOTIONS, default="walk", help="avatar scene: the motion at start")
+    parser.add_argument(
+        "--motion",
+        default="walk",
+        help=f"avatar scene: the motion at start, {', '.join(AVATAR_MOTIONS)} or a .bvh file (retargeted, looped)",
+    )
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
     parser.add_argument("--port", type=int, default=8080, help="TCP port, 0..65535 (0 picks a free one)")
@@ -149,8 +153,11 @@ def main(argv: list[str] | None = None) -> int:
     backend.init(args.device)
     avatar = None
     if args.scene == "avatar":
-        config = AvatarConfig(garment="procedural" if args.smoke and args.garment is None else args.garment,
-                              motion=args.motion)  # fmt: skip
+        try:
+            config = AvatarConfig(garment="procedural" if args.smoke and args.garment is None else args.garment,
+                                  motion=args.motion)  # fmt: skip
+        except ValueError as error:
+            parser.error(str(error))
         avatar = lambda progress: AvatarSimulation(config, progress)  # noqa: E731
     elif args.garment is not None:
         parser.error("--garment belongs to --scene avatar")

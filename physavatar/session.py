@@ -27,7 +27,7 @@ import torch
 
 from kernels import backend
 from kernels.raycast import MeshBVH
-from physavatar.body import Body, Motion, jump, raise_arms, turn, walk
+from physavatar.body import Body, Motion, jump, load_bvh, raise_arms, turn, walk
 from physavatar.cloth import ClothConfig, ClothControl, ClothStepReport, SolverCloth
 from physavatar.cloth.picking import GarmentDrag, GarmentPick
 from physavatar.garment import (
@@ -72,6 +72,8 @@ _FPS = 25.0  # frames per second of the motions; Δt = 1 / 25 s as the paper's 0
 _WALK_PERIOD = 28  # frames of one gait cycle: cadence 25 / 28 cycles per second
 _SCRUB_FRAMES_PER_STEP = 2.0  # a scrubbed body travels to its new pose this fast, so no step sweeps it far
 _SPEED_RANGE = (0.0, 4.0)
+_BVH_SECONDS = 20.0  # s of a BVH file played (its frames are skinned up front: 20 s of the mannequin is 90 MB)
+_BVH_BLEND = 25  # frames of the eases into and out of a BVH clip (1 s)
 _CPU_CANDIDATE_MARGIN = 0.01
 """m, the contact candidates' reach beyond each vertex's predicted path on the CPU (:attr:`ClothConfig.
 candidate_margin`; the solver's 2 mm was the fastest for the converged walk): a dragged garment leaves a 2 mm reach
@@ -119,6 +121,14 @@ _RANGES = {
 }
 
 
+def _check_motion(name) -> None:
+    """Refuse a motion that is neither one of :data:`AVATAR_MOTIONS` nor a ``.bvh`` file."""
+    if name in AVATAR_MOTIONS:
+        return
+    if not (isinstance(name, str) and name.lower().endswith(".bvh") and Path(name).is_file()):
+        raise ValueError(f"unknown motion {str(name)[:80]!r}; valid: {', '.join(AVATAR_MOTIONS)} or a .bvh file")
+
+
 def _number(value, name: str) -> float:
     lo, hi = _RANGES[name]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
@@ -135,7 +145,8 @@ class AvatarConfig:
             procedural skirt at :data:`CPU_SKIRT`); ``"procedural"``; a shared garment's name (``"skirt1252"``,
             ``"skirt7271"``, :data:`physavatar.garment.SHARED_GARMENTS`); or the path of an OBJ/PLY garment.
         skirt: ``(rings, segments)`` of the procedural skirt.
-        motion: the motion at start (:data:`AVATAR_MOTIONS`).
+        motion: the motion at start: one of :data:`AVATAR_MOTIONS` or the path of a ``.bvh`` file (retargeted onto
+            the mannequin, eased in from the rest pose and back to its first pose so that it loops).
         fabric: the fabric at start (:data:`FABRIC_PRESETS`).
         newton_iterations: most Newton iterations a frame; ``None``: 6 on the CPU (an interactive cap, as the
             PIE-NeRF bodies' one iteration: with the garment dragged across the walking legs a converged frame took
@@ -168,8 +179,7 @@ class AvatarConfig:
     speed: float = 1.0
 
     def __post_init__(self):
-        if self.motion not in AVATAR_MOTIONS:
-            raise ValueError(f"unknown motion {self.motion!r}; valid: {', '.join(AVATAR_MOTIONS)}")
+        _check_motion(self.motion)
         if self.fabric not in FABRIC_PRESETS:
             raise ValueError(f"unknown fabric {self.fabric!r}; valid: {', '.join(FABRIC_PRESETS)}")
         if self.newton_iterations is not None and not (
@@ -216,6 +226,44 @@ class _Clip:
         while frame > self.last:
             frame -= span
         return frame
+
+
+def _bvh_motion(path: Path, body: Body) -> tuple[Motion, int, str]:
+    """A BVH file as a looping clip at 25 fps: ``(motion, loop start, note)``.
+
+    The file is retargeted onto the mannequin (:func:`physavatar.body.load_bvh`, its root starting above the origin),
+    sampled at 25 fps (the nearest frame) and cut at :data:`_BVH_SECONDS`; the clip eases from the rest pose (the pose
+    the garment was placed in) to the file's first pose over :data:`_BVH_BLEND` frames, and from its last pose back to
+    its first over as many, so that it loops without a jump; the loop starts at the file's first pose."""
+    motion = load_bvh(path, body.skeleton, start_at_origin=True)
+    pick = torch.arange(0.0, motion.num_frames - 1 + 1e-9, motion.fps / _FPS).round().long()
+    cut = pick[: int(_BVH_SECONDS * _FPS) + 1]
+    rotations, root = motion.rotations[cut], motion.root_translation[cut]
+    rest_rotations = torch.eye(3, dtype=rotations.dtype).expand_as(rotations[0])
+    ease = torch.tensor([_ease_weight(k / _BVH_BLEND) for k in range(_BVH_BLEND)], dtype=rotations.dtype)
+
+    def blend(a_rot, a_root, b_rot, b_root):
+        # rotation matrices blended entry-wise and re-orthonormalised (SVD): the poses are a second apart at most
+        mixed = torch.lerp(a_rot[None], b_rot[None], ease[:, None, None, None])
+        u, _, v = torch.linalg.svd(mixed)
+        return u @ v, torch.lerp(a_root[None], b_root[None], ease[:, None])
+
+    into = blend(rest_rotations, torch.zeros_like(root[0]), rotations[0], root[0])
+    back = blend(rotations[-1], root[-1], rotations[0], root[0])
+    clip = Motion(
+        torch.cat([into[0], rotations, back[0][1:], rotations[:1]]),
+        torch.cat([into[1], root, back[1][1:], root[:1]]),
+        _FPS,
+        motion.joint_names,
+    )
+    seconds = cut.numel() / _FPS
+    note = f"{path.name}: {seconds:.1f} s at 25 fps" + (" (cut)" if pick.numel() > cut.numel() else "")
+    return clip, _BVH_BLEND, note
+
+
+def _ease_weight(t: float) -> float:
+    """Smoothstep ``3t² − 2t³``: 0 at 0, 1 at 1, still at both ends."""
+    return t * t * (3.0 - 2.0 * t)
 
 
 def _motion(name: str, body: Body) -> tuple[Motion, int]:
@@ -278,7 +326,6 @@ class AvatarSimulation:
     """
 
     kind = "garment"
-    motions = AVATAR_MOTIONS
     fabric_presets = tuple(FABRIC_PRESETS)
 
     def __init__(self, config: AvatarConfig = AvatarConfig(), progress: Progress | None = None):
@@ -351,7 +398,11 @@ class AvatarSimulation:
 
     def _clip_of(self, name: str) -> _Clip:
         if name not in self._clips:
-            motion, loop_start = _motion(name, self.body)
+            if name in AVATAR_MOTIONS:
+                motion, loop_start = _motion(name, self.body)
+            else:
+                motion, loop_start, note = _bvh_motion(Path(name), self.body)
+                self.notes = (*self.notes, f"playing {note}")
             device = backend.torch_device()
             index = self.boundary.long()
             body = self.body.skin(motion.rotations, motion.root_translation).to(device, F64)
@@ -382,6 +433,11 @@ class AvatarSimulation:
         self.dt = 1.0 / _FPS
 
     # -- state and stepping ------------------------------------------------------------------------------
+
+    @property
+    def motions(self) -> tuple[str, ...]:
+        """The motions :meth:`set_motion` takes: :data:`AVATAR_MOTIONS` and the BVH files played so far."""
+        return (*AVATAR_MOTIONS, *(name for name in self._clips if name not in AVATAR_MOTIONS))
 
     @property
     def clip(self) -> _Clip:
@@ -522,8 +578,7 @@ class AvatarSimulation:
     def set_motion(self, name: str) -> None:
         """Play motion ``name`` (:data:`AVATAR_MOTIONS`) from its first frame: the body and the garment start again
         from rest (the first pose of every motion is the rest pose), pins and drag cleared."""
-        if name not in AVATAR_MOTIONS:
-            raise ValueError(f"unknown motion {str(name)[:40]!r}; valid: {', '.join(AVATAR_MOTIONS)}")
+        _check_motion(name)
         self.motion = name
         self._clip_of(name)
         self.reset()
