@@ -6,6 +6,7 @@ import math
 import pytest
 import torch
 
+from physavatar.body import raise_arms, save_bvh
 from physavatar.session import CONTACT_RGB, FABRIC_PRESETS, AvatarConfig, AvatarSimulation
 
 F64 = torch.float64
@@ -144,3 +145,23 @@ def test_contact_counters_agree_with_the_tint_and_find_nothing_inside_over_a_wal
     breakdown = sim.time_breakdown()["seconds_per_step"]
     assert set(breakdown) == {"candidate search", "Newton iterations", "linear solves", "contact view"}
     assert all(value > 0.0 for value in breakdown.values())
+
+
+def test_a_bvh_file_plays_eased_in_from_rest_and_loops_onto_its_first_pose(session, tmp_path):
+    sim = session
+    path = tmp_path / "raise.bvh"
+    save_bvh(raise_arms(sim.body.skeleton, duration=0.6, fps=30.0), path, sim.body.skeleton)
+    sim.set_motion(str(path))
+    try:
+        clip = sim.clip
+        assert str(path) in sim.motions and clip.loop_start == 25
+        rest = sim.body.vertices.to(clip.body)
+        assert float((clip.body[0] - rest).abs().max()) == 0.0  # the pose the garment was placed in
+        assert float((clip.body[clip.last] - clip.body[clip.loop_start]).abs().max()) < 1e-9
+        for _ in range(4):
+            sim.step()
+            assert sim.contact()["inside"] == 0
+        with pytest.raises(ValueError, match="or a .bvh file"):
+            sim.set_motion(str(tmp_path / "missing.bvh"))
+    finally:
+        sim.set_motion("walk")
