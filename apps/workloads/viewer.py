@@ -30,8 +30,9 @@ import numpy as np
 import torch
 import umsgpack
 
-from apps.workloads import Case, workload
+from apps.workloads import Case, WorkloadUnavailable, workload
 from kernels import backend
+from physavatar.garment import SHARED_GARMENTS
 from physavatar.session import AvatarConfig, AvatarSimulation
 from pienerf.nerf.cameras import orbit_cameras
 from pienerf.nerf.fitting import NerfFit
@@ -100,6 +101,11 @@ def _packed(positions: torch.Tensor) -> bytes:
 
 @workload("viewer_frame_avatar", "the avatar viewer's frame while dragging: one garment step + one mesh update")
 def bench_viewer_frame_avatar(device: str, size: str) -> Case:
+    if size == "large" and not (SHARED_GARMENTS / "skirt7271.obj").is_file():
+        raise WorkloadUnavailable(
+            f"viewer_frame_avatar --size large needs the DiffCloth skirt skirt7271.obj, absent from {SHARED_GARMENTS}; "
+            "put the project's shared data folder beside the checkout"
+        )
     skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
     simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
     x = simulation.state.x.cpu()
