@@ -1,9 +1,9 @@
 """Interactive drag-and-force viewer of a Q-GMLS body (PIE-NeRF Fig. 1, 5).
 
-    python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|PATH] [--device cpu|cuda]
+    python -m apps.demo [--scene plant|teapot|jelly|cloth|sculpture|avatar|PATH] [--device cpu|cuda]
                         [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
-                        [--frame-budget-ms 33.3]
+                        [--frame-budget-ms 33.3] [--garment NAME|PATH] [--motion walk|turn|raise|jump|BVH]
     python -m apps.demo --build-nerf-asset
 
 ``--build-nerf-asset`` fits the plant's coarse NeRF again with the project's own fitting code and writes the copy
@@ -37,6 +37,17 @@ background; for the other scenes the first fit takes longer than a start may tak
 ``docs/benchmarks.md``), so the default stays ``mesh``; later starts load the cached checkpoint. In viser's NeRF
 mode the body is picked by clicking (the mouse-drag handle belongs to the hidden mesh).
 
+``--scene avatar`` dresses the procedural mannequin in a garment (:class:`physavatar.session.AvatarSimulation`):
+the mannequin plays a motion (``--motion``: walk, turn, raise, jump or a BVH file; each loops) and the garment
+is simulated by PhysAvatar's Codim-IPC cloth solver, one implicit step a frame. The panel plays, pauses and
+scrubs the motion and sets its speed; sets the fabric (density, κs, κb, friction) or a preset (silk, cotton,
+denim, leather, :data:`physavatar.session.FABRIC_PRESETS`); and shows the contact: garment vertices within the
+barrier's reach of the body tinted, the smallest distances to the body and to itself, and the count of vertices
+inside the body (0: the barrier keeps them out). The garment is dragged as the bodies are (a clamped spring on
+the picked vertex, a term of the step's potential) and a clicked vertex can be pinned. ``--garment`` picks it:
+``procedural``, a shared garment's name (``skirt1252``, ``skirt7271``) or an OBJ/PLY path; by default the full
+``skirt7271`` on CUDA and, on the CPU, a procedural skirt small enough to stay interactive (the page says which).
+
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
 on, and a client that disconnects only leaves its GUI behind. A bad ``--host`` or ``--port`` (outside 0..65535) is
@@ -53,6 +64,7 @@ import sys
 from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn, TimeElapsedColumn
 
 from kernels import backend
+from physavatar.session import AVATAR_MOTIONS, AvatarConfig, AvatarSimulation
 from pienerf.nerf.cameras import orbit_cameras
 from pienerf.viewer import RENDER_MODES, VIEWERS, build_app
 from pienerf.viewer.nerf_job import build_nerf_asset
@@ -82,7 +94,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--scene",
         default="plant",
-        help="plant, teapot, jelly, cloth, sculpture, a mesh path or a NeRF checkpoint (.pt)",
+        help="plant, teapot, jelly, cloth, sculpture, avatar (the dressed mannequin), a mesh path or a NeRF "
+        "checkpoint (.pt)",
+    )
+    parser.add_argument(
+        "--garment",
+        default=None,
+        help="avatar scene: procedural, a shared garment (skirt1252, skirt7271) or an OBJ/PLY path (default: "
+        "skirt7271 on CUDA, a small procedural skirt on the CPU)",
+    )
+    parser.add_argument(
+        "--motion",
+        default="walk",
+        help=f"avatar scene: the motion at start, {', '.join(AVATAR_MOTIONS)} or a .bvh file (retargeted, looped)",
     )
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
@@ -127,6 +151,16 @@ def main(argv: list[str] | None = None) -> int:
             f"got {args.frame_budget_ms}"
         )
     backend.init(args.device)
+    avatar = None
+    if args.scene == "avatar":
+        try:
+            config = AvatarConfig(garment="procedural" if args.smoke and args.garment is None else args.garment,
+                                  motion=args.motion)  # fmt: skip
+        except ValueError as error:
+            parser.error(str(error))
+        avatar = lambda progress: AvatarSimulation(config, progress)  # noqa: E731
+    elif args.garment is not None:
+        parser.error("--garment belongs to --scene avatar")
     try:
         with _TerminalProgress() as progress:
             app = build_app(
@@ -139,6 +173,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.nerf_checkpoint,
                 args.cache_dir,
                 progress,
+                avatar,
             )
     except (ValueError, OSError) as error:  # a bad scene or value, a missing file, a port in use
         print(f"error: {error.strerror if isinstance(error, OSError) and error.strerror else error}", file=sys.stderr)

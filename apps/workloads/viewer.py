@@ -7,16 +7,33 @@
 :func:`pienerf.scenes.scene_nerf`) at full resolution, what the viewer shows once the camera is still.
 Throughput is frames per second of step + render; the record also gives the median step and the median render
 (``step_median_s``, ``render_median_s``) of the timed frames, since the two scale differently with the size.
+
+``viewer_frame_avatar``: the frame of ``apps.demo --scene avatar`` while the user drags: one garment step of
+:class:`physavatar.session.AvatarSimulation` (the mannequin walking, the front of the hem dragged by a target that
+sways sideways by ±12 cm over 2 s, as a hand on the mouse) and one mesh update as the meshcat viewer makes it (the
+garment's and the mannequin's vertex buffers packed as the page's ``set_vertices``, the tint, the contact counters).
+The garment is the session's choice for the device at ``paper`` size (the procedural skirt of 96 vertices on the
+CPU, skirt7271 on CUDA), the 60-vertex procedural skirt at ``smoke`` size and skirt7271 at ``large`` size. The
+record carries the median step and update (``step_median_s``, ``update_median_s``), the session's time breakdown,
+the Newton iterations and the most vertices found inside the body over the timed frames (``vertices_inside_body``,
+0 by the barrier's guarantee).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 import statistics
 import time
 
-from apps.workloads import Case, workload
+import numpy as np
+import torch
+import umsgpack
+
+from apps.workloads import Case, WorkloadUnavailable, workload
 from kernels import backend
+from physavatar.garment import SHARED_GARMENTS
+from physavatar.session import AvatarConfig, AvatarSimulation
 from pienerf.nerf.cameras import orbit_cameras
 from pienerf.nerf.fitting import NerfFit
 from pienerf.scenes import scene_nerf
@@ -69,3 +86,73 @@ def bench_viewer_frame(device: str, size: str) -> Case:
 @workload("viewer_frame_nerf", "the viewer's frame on the plant: one step + one warped-NeRF render")
 def bench_viewer_frame_nerf(device: str, size: str) -> Case:
     return _case(size, "nerf")
+
+
+_AVATAR_GARMENT = {"smoke": "procedural", "paper": None, "large": "skirt7271"}
+_SWAY = 0.12  # m, the drag target's sideways swing
+_SWAY_PERIOD = 2.0  # s
+
+
+def _packed(positions: torch.Tensor) -> bytes:
+    """A vertex buffer as the meshcat viewer sends it: float32 bytes in a msgpack extension."""
+    data = np.ascontiguousarray(positions.numpy(), dtype=np.float32)
+    return umsgpack.packb({"type": "set_vertices", "positions": umsgpack.Ext(0x17, data.tobytes())})
+
+
+@workload("viewer_frame_avatar", "the avatar viewer's frame while dragging: one garment step + one mesh update")
+def bench_viewer_frame_avatar(device: str, size: str) -> Case:
+    if size == "large" and not (SHARED_GARMENTS / "skirt7271.obj").is_file():
+        raise WorkloadUnavailable(
+            f"viewer_frame_avatar --size large needs the DiffCloth skirt skirt7271.obj, absent from {SHARED_GARMENTS}; "
+            "put the project's shared data folder beside the checkout"
+        )
+    skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
+    simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
+    x = simulation.state.x.cpu()
+    front = x[:, 2] > x[:, 2].mean()
+    hem = int(torch.where(front, x[:, 1], torch.full_like(x[:, 1], math.inf)).argmin())
+    simulation.grab(hem)
+    start = x[hem].double()
+    step_times, update_times = [], []
+    extra: dict = {"notes": list(simulation.notes), "vertices_inside_body": 0}
+
+    def run():
+        clock = time.perf_counter()
+        sway = _SWAY * math.sin(2.0 * math.pi * simulation.time / _SWAY_PERIOD)
+        simulation.drag_to(target=start + torch.tensor([sway, 0.0, 0.0], dtype=torch.float64))
+        report = simulation.step()
+        backend.synchronize()
+        middle = time.perf_counter()
+        sent = len(_packed(simulation.deformed_mesh_vertices())) + len(_packed(simulation.body_vertices()))
+        colors = simulation.vertex_colors()
+        contact = simulation.contact()
+        update_times.append(time.perf_counter() - middle)
+        step_times.append(middle - clock)
+        extra.update(
+            step_median_s=statistics.median(step_times),
+            update_median_s=statistics.median(update_times),
+            newton_iterations=report.newton_iterations,
+            bytes_sent=sent + colors.numel() * 4,
+            vertices_inside_body=max(extra["vertices_inside_body"], contact["inside"]),
+            min_distance_body=contact["min_body_m"] if math.isfinite(contact["min_body_m"]) else None,
+            breakdown_s=simulation.time_breakdown()["seconds_per_step"],
+        )
+        return simulation.state.x
+
+    summary = simulation.summary()
+    return Case(
+        run=run,
+        reference=None,
+        params={
+            "scene": "avatar",
+            "garment": summary["garment"],
+            "garment_vertices": summary["garment_vertices"],
+            "body_vertices": summary["body_vertices"],
+            "motion": summary["motion"],
+            "dragging": True,
+        },
+        work=1.0,
+        unit="frames/s",
+        extra=extra,
+        frame_seconds=simulation.dt,
+    )

@@ -61,7 +61,9 @@ The package's modules, each built from the ones before it:
 * :mod:`~physavatar.cloth.potential`: the incremental potential, its gradient and element Hessians, the material;
 * :mod:`~physavatar.cloth.newton_loop`: the Newton iterations of a step, over those three parts;
 * :mod:`~physavatar.cloth.solver`: :class:`SolverCloth`, its state, control, statistics and sensitivities;
-* :mod:`~physavatar.cloth.rollout`: :class:`ClothRollout`, a rollout as a torch operation with an adjoint backward.
+* :mod:`~physavatar.cloth.rollout`: :class:`ClothRollout`, a rollout as a torch operation with an adjoint backward;
+* :mod:`~physavatar.cloth.picking`: :class:`GarmentDrag`, a garment vertex picked by a ray and dragged or pinned by
+  springs of the step's potential (:attr:`ClothControl.spring_index`).
 """
 
 from physavatar.cloth.config import DENSITY_RANGE, LINEAR_SOLVERS, STIFFNESS_RANGE, ClothConfig
@@ -88,6 +90,7 @@ from physavatar.cloth.newton_system import (
     NewtonMatrix,
     filtered_elements,
 )
+from physavatar.cloth.picking import GarmentDrag, GarmentPick
 from physavatar.cloth.potential import (
     ClothEnergies,
     IncrementalPotential,
@@ -120,6 +123,8 @@ __all__ = [
     "DENSE_MAX_DOFS",
     "DENSITY_RANGE",
     "GarmentDistances",
+    "GarmentDrag",
+    "GarmentPick",
     "IncrementalPotential",
     "LINEAR_SOLVERS",
     "LaggedFriction",

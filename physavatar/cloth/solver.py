@@ -55,12 +55,21 @@ class ClothControl:
         body_end: ``[B, 3]`` body collider vertices at the end of the step, m (linear motion in between).
         boundary_index: ``[D]`` int64 garment vertices that follow their targets exactly (Dirichlet).
         boundary_target: ``[D, 3]`` their positions at the end of the step, m.
+        spring_index: ``[S]`` int64 garment vertices pulled by a zero-rest-length spring (a mouse drag, a pin), or
+            ``None``. Each adds ``½ k_s ‖x_i − t_s‖²`` to the step's potential (times ``Δt²``, as every force term),
+            so the step stays a minimisation and its contact guarantees hold; a spring on a Dirichlet vertex
+            does nothing.
+        spring_target: ``[S, 3]`` where each spring pulls, m.
+        spring_stiffness: ``[S]`` their stiffness ``k_s``, N/m (positive).
     """
 
     body_start: torch.Tensor
     body_end: torch.Tensor
     boundary_index: torch.Tensor
     boundary_target: torch.Tensor
+    spring_index: torch.Tensor | None = None
+    spring_target: torch.Tensor | None = None
+    spring_stiffness: torch.Tensor | None = None
 
     @staticmethod
     def free(device: torch.device | None = None) -> ClothControl:
@@ -282,8 +291,58 @@ class SolverCloth:
         return buf
 
     def _step(self, state_in: ClothState, state_out: ClothState, control: ClothControl, dt: float) -> ClothStepReport:
-        cfg = self.config
+        springs = self._check_springs(control)
         X, target, ctx = self.step_context(state_in, control, dt, state_out)
+        if springs is None:
+            return self._newton(state_out, X, target, ctx, dt)
+        # ½ m ‖x − x̂‖² + Δt² ½ k ‖x − t‖² = ½ (m + Δt² k) ‖x − x̂'‖² + const with x̂' = (m x̂ + Δt² k t) / (m + Δt² k):
+        # each spring folds into its vertex's inertia term, in place (the Newton loop's buffers and CUDA graphs read
+        # the masses and x̂ where they are); the masses are restored when the step ends
+        index, spring_target, stiffness = springs
+        mass = self.potential.mass
+        kept = mass[index]
+        weight = torch.zeros_like(mass).index_add_(0, index, dt * dt * stiffness)[index]
+        pull = torch.zeros_like(ctx.x_hat).index_add_(0, index, (dt * dt * stiffness)[:, None] * spring_target)[index]
+        ctx.x_hat[index] = (kept[:, None] * ctx.x_hat[index] + pull) / (kept + weight)[:, None]
+        mass[index] = kept + weight
+        try:
+            return self._newton(state_out, X, target, ctx, dt)
+        finally:
+            mass[index] = kept
+
+    def _check_springs(self, control: ClothControl):
+        """``(index [S], target [S, 3], stiffness [S])`` of the control's springs on the device, or ``None``."""
+        index, target, stiffness = control.spring_index, control.spring_target, control.spring_stiffness
+        if index is None and target is None and stiffness is None:
+            return None
+        if index is None or target is None or stiffness is None:
+            raise ValueError("spring_index, spring_target and spring_stiffness go together: give all three or none")
+        device = self.x_rest.device
+        index = index.to(device).long()
+        count = index.numel()
+        if index.dim() != 1 or tuple(target.shape) != (count, 3) or tuple(stiffness.shape) != (count,):
+            raise ValueError(
+                f"springs must be spring_index [S], spring_target [S, 3] and spring_stiffness [S], got "
+                f"{list(index.shape)}, {list(target.shape)} and {list(stiffness.shape)}"
+            )
+        if count == 0:
+            return None
+        if self.config.static:
+            raise ValueError("a static solve has no inertia to fold springs into; pin vertices as boundary instead")
+        target = target.to(device, F64)
+        stiffness = stiffness.to(device, F64)
+        valid = torch.stack(
+            [(index.min() >= 0) & (index.max() < self.vertex_count), torch.isfinite(target).all(),
+             (torch.isfinite(stiffness) & (stiffness > 0)).all()]
+        ).tolist()  # fmt: skip
+        for ok, problem in zip(valid, ("spring_index must index garment vertices", "spring_target holds NaN or inf",
+                                       "spring_stiffness must be positive and finite, N/m"), strict=True):  # fmt: skip
+            if not ok:
+                raise ValueError(problem)
+        return index, target, stiffness
+
+    def _newton(self, state_out: ClothState, X, target, ctx, dt: float) -> ClothStepReport:
+        cfg = self.config
         v, kinematic = self.vertex_count, ctx.kinematic
         x_start, b0 = ctx.x_start[:v], ctx.x_start[v:]
         buf = self._step_buffers

@@ -119,6 +119,7 @@ def __getattr__(name: str):
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     return getattr(importlib.import_module(f"{__name__}.{module}"), name)
 
+
 SMOKE = {"kernel_count": 6, "particle_radius": 0.06, "lloyd_iterations": 0}
 """Settings of a smoke run: a body of a few kernels that builds in seconds."""
 
@@ -136,8 +137,13 @@ def build_app(
     nerf_checkpoint: str | None = None,
     cache_dir: str | None = None,
     progress=None,
+    simulation=None,
 ) -> DemoApp:
     """The simulation of ``scene`` behind the chosen viewer, showing ``render`` (:data:`RENDER_MODES`).
+
+    ``simulation``, when given, builds the simulation instead, called as ``simulation(progress)``: a scene of
+    another package behind the same verbs, such as the dressed avatar (:class:`physavatar.session.AvatarSimulation`,
+    which this package may not import; ``apps.demo`` passes it); ``scene`` then only names it.
 
     With ``render="nerf"`` the NeRF is loaded from ``nerf_checkpoint`` or fitted to the scene (a few-second fit
     with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up. A bad ``host`` or
@@ -152,6 +158,10 @@ def build_app(
     # here (meshcat with tornado, or viser), only when that front end is built.
     viewer = __getattr__("ViserViewer" if viewer_name == "viser" else "MeshcatViewer")(host, port)
     try:
+        if simulation is not None:
+            if render != "mesh":
+                raise ValueError(f"the {scene} scene shows its mesh only, got --render {render}")
+            return DemoApp(simulation(progress), viewer, render)
         simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
         nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
         if render == "nerf":

@@ -197,8 +197,12 @@ def nerf_image(app: DemoApp, schedule: RefinementSchedule, cameras, level: int, 
 
 
 def picked_text(hit) -> str:
-    """The message of a pick: the picked material point (rest space, m), or that nothing was hit."""
-    return "picked nothing" if hit is None else f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)"
+    """The message of a pick: the picked material point (rest space, m) or garment vertex, or that nothing was hit."""
+    if hit is None:
+        return "picked nothing"
+    if hasattr(hit, "vertex"):
+        return f"picked garment vertex {hit.vertex} at {np.round(hit.world.numpy(), 3).tolist()} (m)"
+    return f"picked {np.round(hit.rest.numpy(), 3).tolist()} (rest, m)"
 
 
 def number_in(value, what: str, lo: float, hi: float) -> float:

@@ -22,6 +22,12 @@ Page messages (JSON objects; anything else is dropped and counted by :class:`Mes
 - ``{"type": "camera", "matrix", "fov", "aspect"}``: the page's camera; camera-to-world ``[16]`` (column-major,
   scene axes, OpenGL camera axes), vertical field of view (degrees), width over height. The NeRF mode renders
   from it.
+- ``{"type": "play" | "pause"}``: play or hold a garment scene's motion; in a body scene, run or pause the loop.
+
+A garment scene (a simulation whose ``kind`` is ``"garment"``: the dressed avatar, :class:`physavatar.session.
+AvatarSimulation`) shows the garment as the pickable body, the mannequin beside it, and the garment panel; its
+``set`` names are :data:`GARMENT_CONTROLS`, ``motion`` and ``preset``. Garment vertices within the barrier's reach of
+the body are tinted (the script's ``set_colors``, sent when the tint changes).
 """
 
 from __future__ import annotations
@@ -54,7 +60,7 @@ from pienerf.viewer.loop import (
 )
 from pienerf.viewer.meshcat_server import MeshcatServer
 
-__all__ = ["Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
+__all__ = ["GARMENT_CONTROLS", "Y_UP_TO_Z_UP", "MeshcatViewer", "page_cameras"]
 
 Y_UP_TO_Z_UP = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
 """``[4, 4]`` transform of the root node: the scene's y-up axes into meshcat's z-up world (+90° about x)."""
@@ -63,9 +69,20 @@ _ROOT = ("pienerf",)
 _BODY = Path((*_ROOT, "body"))
 _PARTICLES = Path((*_ROOT, "particles"))
 _TARGET = Path((*_ROOT, "drag_target"))
+_AVATAR = Path((*_ROOT, "avatar"))
 _CONTROLS = tuple(name for name in CONTROL_RANGES if name != "kernel_count")
-_BUTTONS = ("release", "pin", "push", "cut", "reset")
+_BUTTONS = ("release", "pin", "push", "cut", "reset", "play", "pause")
 _TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
+
+GARMENT_CONTROLS = {
+    "fabric_density": ("density", (200.0, 640.0)),
+    "kappa_s": ("kappa_s", (0.1, 8.0)),
+    "kappa_b": ("kappa_b", (0.1, 8.0)),
+    "friction": ("friction", (0.0, 1.0)),
+}
+"""A garment scene's fabric sliders, page name -> (``set_fabric`` keyword, (lowest, highest)): density (kg/m³),
+κ_s, κ_b and friction μ; ``speed`` (motion frames a step, 0–4) and ``frame`` (scrub) are its playback sliders."""
+_GARMENT_ONLY = ("push", "cut", "resample")
 
 
 def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
@@ -89,6 +106,18 @@ def page_cameras(matrix, fov: float, aspect: float, height: int) -> Cameras:
     fov = number_in(fov, "camera fov (deg)", 1.0, 179.0)
     aspect = number_in(aspect, "camera aspect", 0.05, 20.0)
     return pinhole_camera(c2w, math.radians(fov), aspect, max(1, int(height)))
+
+
+def _is_garment(simulation) -> bool:
+    """Whether ``simulation`` is a garment scene (``kind == "garment"``) rather than a PIE-NeRF body."""
+    return getattr(simulation, "kind", "body") == "garment"
+
+
+def _colors_command(path: Path, colors: np.ndarray) -> dict:
+    """The project script's ``set_colors``: a new ``[N, 3]`` float32 vertex-colour buffer for the geometry at
+    ``path``."""
+    data = np.ascontiguousarray(colors, dtype=np.float32)
+    return {"type": "set_colors", "path": path.lower(), "colors": umsgpack.Ext(0x17, data.tobytes())}
 
 
 def _vertices_command(path: Path, positions: np.ndarray) -> dict:
@@ -143,6 +172,9 @@ class MeshcatViewer:
         self.app = app
         sim = app.simulation
         send = self.server.send
+        if _is_garment(sim):
+            self._attach_garment(app)
+            return
         send(SetTransform(Y_UP_TO_Z_UP, Path(_ROOT)).lower(), key="root")
         send(SetProperty("visible", False, Path(("Axes",))).lower(), key="axes")
         geometry = g.TriangularMeshGeometry(
@@ -181,6 +213,9 @@ class MeshcatViewer:
     def _send_controls(self) -> None:
         """The controls' ranges and current values, for every tab (again after each change)."""
         sim, app = self.app.simulation, self.app
+        if _is_garment(sim):
+            self._send_garment_controls()
+            return
         material = sim.material
         self.server.send_json(
             {
@@ -233,6 +268,14 @@ class MeshcatViewer:
         if app is None:
             raise ValueError(f"{kind} refused: the simulation is still being built; the page shows it when ready")
         sim = app.simulation
+        if _is_garment(sim) and kind in _GARMENT_ONLY:
+            raise ValueError(f"{kind} refused: a garment has no {kind}; drag, pin, release or reset it")
+        if kind in ("play", "pause"):
+            if _is_garment(sim):
+                app.submit(kind, sim.play if kind == "play" else sim.pause, key="play", report=lambda _: self._played())
+            else:
+                app.submit(kind, lambda: setattr(app, "paused", kind == "pause"), key="play")
+            return
         if kind == "pick":
             origin = vector3(message.get("origin"), "ray origin")
             direction = vector3(message.get("direction"), "ray direction")
@@ -264,6 +307,8 @@ class MeshcatViewer:
         elif kind == "cut":
             cut = lambda: sim.cut_picked((0.0, 1.0, 0.0), self._progress("cutting"))  # noqa: E731
             app.submit("cut", cut, heavy=True, report=lambda plane: f"cut through {np.round(plane.point, 3).tolist()}")
+        elif _is_garment(sim):
+            app.submit("reset", sim.reset, key="reset", report=lambda _: "reset: the rest pose, the garment at rest")
         else:
             app.submit("reset", sim.reset, key="reset", report=lambda _: "reset to rest")
 
@@ -279,6 +324,9 @@ class MeshcatViewer:
 
     def _set(self, name, value) -> None:
         app, sim = self.app, self.app.simulation
+        if _is_garment(sim):
+            self._set_garment(name, value)
+            return
         if name == "model":
             if value not in sim.material_models:
                 raise ValueError(f"unknown material model {str(value)[:40]!r}; valid: {', '.join(sim.material_models)}")
@@ -340,6 +388,9 @@ class MeshcatViewer:
     def update(self, app) -> None:
         """Send this frame: vertex buffers of what is shown, the drag marker, the status; NeRF images."""
         sim, send = app.simulation, self.server.send
+        if _is_garment(sim):
+            self._update_garment(app)
+            return
         body = (id(sim.model), sim.model.basis.kernel_count, sim.particle_positions().shape[0])
         if body != self._body:  # a re-sampling or a cut rebuilt it: new particles, a new kernel count
             self._body = body
@@ -399,6 +450,148 @@ class MeshcatViewer:
             self.server.send_json({"type": "nerf", "image": data, "level": level}, to=client)
             self.nerf_renders.append(level)
             self.last_nerf_image = image
+
+    # -- a garment scene ---------------------------------------------------------------------------------
+
+    def _attach_garment(self, app) -> None:
+        """The garment (the pickable body node), the mannequin, the drag marker, the camera and the panel."""
+        sim, send = app.simulation, self.server.send
+        send(SetTransform(Y_UP_TO_Z_UP, Path(_ROOT)).lower(), key="root")
+        send(SetProperty("visible", False, Path(("Axes",))).lower(), key="axes")
+        garment = g.TriangularMeshGeometry(
+            sim.deformed_mesh_vertices().numpy(), sim.mesh_faces.numpy(), color=sim.vertex_colors().numpy()
+        )
+        material = g.MeshLambertMaterial(vertexColors=True, side=2)  # both sides: the skirt's inside shows
+        send(SetObject(garment, material, _BODY).lower(), key="body")
+        self._tint = sim.vertex_colors().numpy()
+        body = g.TriangularMeshGeometry(sim.body_vertices().numpy(), sim.body.faces.numpy())
+        send(SetObject(body, g.MeshLambertMaterial(color=0xC7BDAD), _AVATAR).lower(), key="avatar")
+        marker = g.Sphere(0.012)
+        send(SetObject(marker, g.MeshLambertMaterial(color=0x3050E0), _TARGET).lower(), key="target")
+        send(SetProperty("visible", False, _TARGET).lower(), key="target visible")
+        centre = sim.centre.double().numpy()
+        send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
+        position = (centre + np.array([0.0, 0.15, 1.6])).tolist()
+        send(
+            SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
+        )
+        self.server.send_json({"type": "view", "target": centre.tolist(), "position": position}, key="view")
+        self.server.send_json({"type": "mode", "mode": "mesh"}, key="mode")
+        self._send_controls()
+        self.report("; ".join(sim.notes) + ". Drag the skirt with the mouse; click it to pick a vertex to pin")
+
+    def _send_garment_controls(self) -> None:
+        sim = self.app.simulation
+        fabric = sim.fabric
+        from_fabric = {"fabric_density": fabric.density, "kappa_s": fabric.kappa_s, "kappa_b": fabric.kappa_b}
+        self.server.send_json(
+            {
+                "type": "controls",
+                "kind": "garment",
+                **from_fabric,
+                "friction": fabric.friction,
+                "preset": sim.fabric_name,
+                "presets": list(sim.fabric_presets),
+                "motion": sim.motion,
+                "motions": list(sim.motions),
+                "playing": sim.playing,
+                "speed": sim.speed,
+                "frame": sim.frame,
+                "frames": sim.frame_count - 1,
+                "render_mode": "mesh",
+                "render_modes": ["mesh"],
+            },
+            key="controls",
+        )
+
+    def _played(self) -> str:
+        self._send_controls()
+        return "playing the motion" if self.app.simulation.playing else "the motion is paused; the garment still moves"
+
+    def _set_garment(self, name, value) -> None:
+        app, sim = self.app, self.app.simulation
+
+        def then(verb, text):
+            def command():
+                result = verb()
+                self._send_controls()
+                self.report(text(result))
+
+            return command
+
+        if name in GARMENT_CONTROLS:
+            keyword, (lo, hi) = GARMENT_CONTROLS[name]
+            number = number_in(value, name.replace("_", " "), lo, hi)
+            command = then(
+                lambda: sim.set_fabric(**{keyword: number}), lambda f: f"{name.replace('_', ' ')} = {number:.3g}"
+            )
+            app.submit(name, command, key=f"set {name}")
+        elif name == "preset":
+            if value not in sim.fabric_presets:
+                raise ValueError(f"unknown fabric {str(value)[:40]!r}; valid: {', '.join(sim.fabric_presets)}")
+            app.submit(
+                "preset", then(lambda: sim.apply_preset(value), lambda f: f"fabric: {value} ({f})"), key="set preset"
+            )
+        elif name == "motion":
+            if value not in sim.motions:
+                raise ValueError(f"unknown motion {str(value)[:40]!r}; valid: {', '.join(sim.motions)}")
+            app.submit("motion", then(lambda: sim.set_motion(value), lambda _: f"motion: {value}"), key="set motion")
+        elif name == "speed":
+            number = number_in(value, "speed", 0.0, 4.0)
+            app.submit("speed", then(lambda: sim.set_speed(number), lambda v: f"speed {v:.2g}x"), key="set speed")
+        elif name == "frame":
+            number = number_in(value, "frame", 0.0, float(sim.frame_count - 1))
+            app.submit("scrub", then(lambda: sim.scrub(number), lambda v: f"to frame {v:.0f}"), key="set frame")
+        elif name == "render_mode":
+            if value != "mesh":
+                raise ValueError(f"a garment scene shows its mesh only, got render mode {str(value)[:40]!r}")
+        else:
+            known = ", ".join([*GARMENT_CONTROLS, "preset", "motion", "speed", "frame"])
+            raise ValueError(f"unknown garment control {str(name)[:40]!r}; known: {known}")
+
+    def _update_garment(self, app) -> None:
+        """This frame of a garment scene: garment and mannequin vertices, the tint when it changed, the drag
+        marker, the status with the contact."""
+        sim, send = app.simulation, self.server.send
+        send(_vertices_command(_BODY, sim.deformed_mesh_vertices().numpy()), key=f"vertices {_BODY.lower()}",
+             volatile=True)  # fmt: skip
+        send(_vertices_command(_AVATAR, sim.body_vertices().numpy()), key=f"vertices {_AVATAR.lower()}", volatile=True)
+        tint = sim.vertex_colors().numpy()
+        if not np.array_equal(tint, self._tint):
+            self._tint = tint
+            send(_colors_command(_BODY, tint), key=f"colors {_BODY.lower()}")
+        target = sim.drag_target
+        if target is not None:
+            matrix = np.eye(4)
+            matrix[:3, 3] = target.double().cpu().numpy()
+            send(SetTransform(matrix, _TARGET).lower(), key="target transform", volatile=True)
+        if (target is not None) != self._target_shown:
+            self._target_shown = target is not None
+            send(SetProperty("visible", self._target_shown, _TARGET).lower(), key="target visible")
+        contact = sim.contact()
+        report = sim.last_report
+        seconds = sim.time_breakdown()["seconds_per_step"]
+
+        def mm(value: float, beyond: float) -> str:
+            return f"{1e3 * value:.2f} mm" if math.isfinite(value) else f"> {1e3 * beyond:g} mm"
+
+        contact_text = (
+            f"contact: {contact['near']} vertices within d̂ = {1e3 * contact['reach_m']:g} mm (tinted), "
+            f"min distance to body {mm(contact['min_body_m'], 100 * contact['reach_m'])}, "
+            f"to itself {mm(contact['min_self_m'], contact['reach_m'])}, {contact['inside']} vertices inside the body"
+        )
+        self.server.send_json(
+            {
+                "type": "status",
+                "text": f"{app.fps:.1f} fps, t = {sim.time:.2f} s, {sim.motion} frame {sim.frame:.0f}"
+                f"{'' if sim.playing else ' (paused)'}, {report.newton_iterations} Newton iterations",
+                "breakdown": ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items()),
+                "contact": contact_text,
+                "fps": app.fps,
+            },
+            key="status",
+            volatile=True,
+        )
 
     def show_progress(self, stage: str, fraction: float | None) -> None:
         """The page's progress bar at ``fraction`` with ``stage``, or hidden (``None``)."""

@@ -130,6 +130,7 @@ class ViserViewer:
         self.background = torch.tensor(background, dtype=torch.float32)
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
+        self._garment = False  # a garment scene (the dressed avatar) is shown
 
     # -- construction ----------------------------------------------------------------------------
 
@@ -137,6 +138,9 @@ class ViserViewer:
         self.app = app
         server, sim = self.server, app.simulation
         server.scene.set_up_direction("+y")
+        if getattr(sim, "kind", "body") == "garment":
+            self._attach_garment(app)
+            return
         faces = sim.mesh_faces.numpy().astype(np.uint32)
         self._faces = faces
         self._colors = (sim.mesh_colors.numpy() * 255).astype(np.uint8)
@@ -272,6 +276,110 @@ class ViserViewer:
             raise ValueError(f"unknown render mode {str(mode)[:40]!r}; valid: {', '.join(RENDER_MODES)}")
         self.app.submit("render mode", lambda: self.set_render_mode(mode), key="render mode")
 
+    # -- a garment scene -------------------------------------------------------------------------
+
+    def _attach_garment(self, app: DemoApp) -> None:
+        """The garment (dragged like a body), the mannequin and the garment panel: motion, playback, fabric.
+        viser's simple mesh takes one colour, so the contact shows as counts in the panel, not as a tint."""
+        self._garment = True
+        server, sim, gui = self.server, app.simulation, self.server.gui
+        self.mesh = server.scene.add_mesh_simple(
+            "/body", sim.deformed_mesh_vertices().numpy(), sim.mesh_faces.numpy().astype(np.uint32),
+            color=(204, 56, 51), side="double",
+        )  # fmt: skip
+        self.avatar = server.scene.add_mesh_simple(
+            "/avatar", sim.body_vertices().numpy(), sim.body.faces.numpy().astype(np.uint32), color=(199, 189, 173)
+        )
+        self.ground = server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
+        self.stats = gui.add_markdown("starting")
+        self.message = gui.add_markdown("; ".join(sim.notes))
+        self.breakdown = gui.add_markdown("")
+        self.contact = gui.add_markdown("")
+        fabric = sim.fabric
+        with gui.add_folder("Garment"):
+            self.motion = gui.add_dropdown("motion", sim.motions, initial_value=sim.motion)
+            self.play = gui.add_button("play")
+            self.pause = gui.add_button("pause")
+            self.frame = gui.add_slider("frame", 0, sim.frame_count - 1, 1, 0)
+            self.speed = gui.add_slider("speed (frames a step)", 0.0, 4.0, 0.25, sim.speed)
+            self.preset = gui.add_dropdown("fabric", (*sim.fabric_presets, "custom"), initial_value=sim.fabric_name)
+            self.fabric_density = gui.add_slider("density (kg/m³)", 200.0, 640.0, 10.0, fabric.density)
+            self.kappa_s = gui.add_slider("κs", 0.1, 8.0, 0.1, fabric.kappa_s)
+            self.kappa_b = gui.add_slider("κb", 0.1, 8.0, 0.1, fabric.kappa_b)
+            self.friction = gui.add_slider("friction μ", 0.0, 1.0, 0.05, fabric.friction)
+        with gui.add_folder("Interaction"):
+            self.release = gui.add_button("release")
+            self.pin = gui.add_button("pin picked vertex")
+            self.reset = gui.add_button("reset")
+        self.progress = gui.add_progress_bar(100.0, visible=False)
+        fabric_handles = {"density": self.fabric_density, "kappa_s": self.kappa_s, "kappa_b": self.kappa_b,
+                          "friction": self.friction}  # fmt: skip
+        self._accepted = {id(handle): handle.value for handle in (self.motion, self.preset, *fabric_handles.values())}
+
+        def fabric_changed(name):
+            return lambda value: app.submit(
+                name, lambda: (sim.set_fabric(**{name: value}), self._sync_fabric()), key=f"set {name}"
+            )
+
+        for name, handle in fabric_handles.items():
+            handle.on_update(self._refusing(handle, fabric_changed(name)))
+
+        def preset_chosen(name):
+            if name != "custom":
+                app.submit("preset", lambda: (sim.apply_preset(name), self._sync_fabric()), key="set preset")
+
+        self.preset.on_update(self._refusing(self.preset, preset_chosen))
+        self.motion.on_update(
+            self._refusing(self.motion, lambda name: app.submit("motion", lambda: sim.set_motion(name)))
+        )
+        self.play.on_click(lambda _e: app.submit("play", sim.play, key="play"))
+        self.pause.on_click(lambda _e: app.submit("pause", sim.pause, key="play"))
+        self.frame.on_update(
+            lambda _e: None if self._setting else app.submit("scrub", lambda: sim.scrub(self.frame.value))
+        )
+        self.speed.on_update(self._refusing(self.speed, lambda v: app.submit("speed", lambda: sim.set_speed(v))))
+        self.release.on_click(lambda _e: app.submit("release", sim.release))
+        self.pin.on_click(lambda _e: app.submit("pin", sim.pin_picked))
+        self.reset.on_click(lambda _e: app.submit("reset", sim.reset, key="reset"))
+        server.scene.on_click()(self.on_click)
+        self.mesh.on_drag("left")(self._on_drag)
+        server.on_client_connect(self._on_connect)
+
+    def _sync_fabric(self) -> None:
+        """The fabric sliders and menu show the fabric in use (after a preset or a refused value)."""
+        sim = self.app.simulation
+        fabric = sim.fabric
+        values = (
+            (self.fabric_density, fabric.density),
+            (self.kappa_s, fabric.kappa_s),
+            (self.kappa_b, fabric.kappa_b),
+            (self.friction, fabric.friction),
+            (self.preset, sim.fabric_name),
+        )
+        for handle, value in values:
+            if handle.value != value:
+                self._set_quietly(handle, value)
+
+    def _update_garment(self, app: DemoApp) -> None:
+        sim = app.simulation
+        with self.server.atomic():
+            self.mesh.vertices = sim.deformed_mesh_vertices().numpy()
+            self.avatar.vertices = sim.body_vertices().numpy()
+        self._sync_gizmo()
+        contact = sim.contact()
+        seconds = sim.time_breakdown()["seconds_per_step"]
+        self.stats.content = (
+            f"**{app.fps:.1f} fps**, t = {sim.time:.2f} s, {sim.motion} frame {sim.frame:.0f}"
+            f"{'' if sim.playing else ' (paused)'}, {sim.last_report.newton_iterations} Newton iterations"
+        )
+        self.breakdown.content = ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items())
+        body, own = contact["min_body_m"], contact["min_self_m"]
+        self.contact.content = (
+            f"contact: {contact['near']} vertices within d̂, min distance to body "
+            f"{f'{1e3 * body:.2f} mm' if np.isfinite(body) else 'far'}, to itself "
+            f"{f'{1e3 * own:.2f} mm' if np.isfinite(own) else '> d̂'}, {contact['inside']} vertices inside the body"
+        )
+
     # -- events ----------------------------------------------------------------------------------
 
     def on_click(self, event) -> None:
@@ -390,6 +498,9 @@ class ViserViewer:
 
     def update(self, app: DemoApp) -> None:
         sim = app.simulation
+        if self._garment:
+            self._update_garment(app)
+            return
         if app.render_mode == "nerf" and "nerf" in sim.render_backends:
             self._update_nerf(app)
         with self.server.atomic():

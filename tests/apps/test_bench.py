@@ -131,6 +131,16 @@ def test_viewer_and_qgmls_step_workloads_report_their_parts(device):
     assert (step["time_device_loop_s"] if step["device_loop"] else step["time_assembly_s"]) > 0
 
 
+def test_the_avatar_viewer_frame_drags_the_skirt_and_reports_its_parts(device):
+    """One garment step and one mesh update while dragging, at the smoke size (a 60-vertex skirt): the parts of the
+    frame apart, the session's breakdown, and nothing inside the body."""
+    (record,) = bench.main(["--workload", "viewer_frame_avatar", "--device", device, "--size", "smoke", "--reps", "2"])
+    assert record["params"]["dragging"] and record["params"]["garment_vertices"] == 60
+    assert record["step_median_s"] > 0 and record["update_median_s"] > 0 and record["bytes_sent"] > 0
+    assert set(record["breakdown_s"]) == {"candidate search", "Newton iterations", "linear solves", "contact view"}
+    assert record["vertices_inside_body"] == 0 and record["realtime_factor"] > 0
+
+
 def test_qgmls_assemble_workloads_say_how_they_ran(device):
     """The assembly runs as the solver's device loop runs it, captured on CUDA only, with the solver's default block
     products (float32 on CUDA, float64 on the CPU) beside float64 ones, each beside the same reference."""

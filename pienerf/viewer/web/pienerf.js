@@ -37,6 +37,7 @@
   const meshcatCommand = viewer.handle_command.bind(viewer);
   viewer.handle_command = (command) => {
     if (command.type === "set_vertices") setVertices(command.path, command.positions);
+    else if (command.type === "set_colors") setColors(command.path, command.colors);
     else meshcatCommand(command);
   };
   const meshcatRender = viewer.render.bind(viewer);
@@ -60,6 +61,16 @@
     geometry.boundingBox = null;
     stats.updates += 1;
     stats.updateMilliseconds += (performance.now() - start - stats.updateMilliseconds) / stats.updates; // mean
+    viewer.set_dirty();
+  }
+
+  function setColors(path, values) {
+    const geometry = objectAt(path).geometry;
+    const color = geometry && geometry.attributes ? geometry.attributes.color : undefined;
+    if (color === undefined || !(values instanceof Float32Array) || values.length !== color.array.length) return;
+    color.array.set(values);
+    color.needsUpdate = true;
+    stats.colorUpdates = (stats.colorUpdates || 0) + 1;
     viewer.set_dirty();
   }
 
@@ -169,6 +180,7 @@
       case "status":
         element("status").textContent = message.text;
         element("breakdown").textContent = message.breakdown;
+        element("contact").textContent = message.contact || "";
         break;
       case "message":
         stats.lastMessage = message.text;
@@ -221,6 +233,24 @@
     input.addEventListener("input", () => { element(`${name}-value`).textContent = slider.text(value()); });
     if (!slider.local) input.addEventListener("change", () => send({ type: "set", name, value: value() }));
   }
+  // a garment scene's sliders: κ on a log scale
+  const garmentSliders = {
+    fabric_density: { text: (v) => `${v.toFixed(0)} kg/m³` },
+    kappa_s: { toValue: (s) => 10 ** s, toSlider: (v) => Math.log10(v), text: (v) => v.toPrecision(2) },
+    kappa_b: { toValue: (s) => 10 ** s, toSlider: (v) => Math.log10(v), text: (v) => v.toPrecision(2) },
+    friction: { text: (v) => v.toFixed(2) },
+    speed: { text: (v) => `${v.toFixed(2)}×` },
+    frame: { text: (v) => `${v.toFixed(0)}` },
+  };
+  for (const [name, slider] of Object.entries(garmentSliders)) {
+    const input = element(name);
+    const value = () => (slider.toValue ? slider.toValue(+input.value) : +input.value);
+    input.addEventListener("input", () => { element(`${name}-value`).textContent = slider.text(value()); });
+    input.addEventListener("change", () => send({ type: "set", name, value: value() }));
+  }
+  for (const name of ["motion", "preset"]) {
+    element(name).addEventListener("change", (event) => send({ type: "set", name, value: event.target.value }));
+  }
   for (const name of ["model", "render_mode"]) {
     element(name).addEventListener("change", (event) => send({ type: "set", name, value: event.target.value }));
   }
@@ -235,7 +265,7 @@
   }
   element("collapse").addEventListener("click", () => setCollapsed(!panel.classList.contains("collapsed")));
   setCollapsed(window.innerWidth < 800);
-  for (const name of ["pin", "push", "cut", "release", "reset"]) {
+  for (const name of ["pin", "push", "cut", "release", "reset", "play", "pause"]) {
     element(name).addEventListener("click", () => send({ type: name }));
   }
 
@@ -248,6 +278,24 @@
 
   function showControls(controls) {
     stats.controls = controls;
+    const garment = controls.kind === "garment";
+    element("garment-panel").hidden = !garment;
+    for (const node of document.querySelectorAll(".body-only")) node.hidden = garment;
+    if (garment) {
+      element("frame").max = controls.frames;
+      for (const [name, slider] of Object.entries(garmentSliders)) {
+        const input = element(name);
+        const value = controls[name];
+        if (document.activeElement !== input) input.value = slider.toSlider ? slider.toSlider(value) : value;
+        element(`${name}-value`).textContent = slider.text(value);
+      }
+      fillSelect(element("motion"), controls.motions, controls.motion);
+      fillSelect(element("preset"), controls.presets.concat(controls.presets.includes(controls.preset) ? [] : [controls.preset]), controls.preset);
+      fillSelect(element("render_mode"), controls.render_modes, controls.render_mode);
+      element("play").classList.toggle("active", controls.playing);
+      element("pause").classList.toggle("active", !controls.playing);
+      return;
+    }
     for (const [name, slider] of Object.entries(sliders)) {
       const input = element(name);
       const value = controls[name];
