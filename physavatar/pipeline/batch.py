@@ -30,7 +30,7 @@ import numpy as np
 
 from kernels import backend
 from physavatar.body import MOTIONS
-from physavatar.fit.estimation import FabricParameters
+from physavatar.fit.estimation import SYNTHETIC_FABRIC, FabricParameters
 from physavatar.pipeline.stages import (
     STAGES,
     PipelineConfig,
@@ -82,7 +82,7 @@ def parse_fabric(text: str) -> tuple[float, float]:
     parts = str(text).split(":")
     try:
         kappa_s, kappa_b = (float(p) for p in parts)
-        FabricParameters(1.0, kappa_s, kappa_b)  # checks the range
+        FabricParameters(SYNTHETIC_FABRIC.density, kappa_s, kappa_b)  # checks the range
     except ValueError as error:
         detail = f" ({error})" if len(parts) == 2 else ""
         raise ValueError(
@@ -238,8 +238,8 @@ def _read(path: Path) -> dict | None:
 def point_metrics(out: Path) -> dict:
     """The headline figures of an experiment folder's stage files, for a batch's index: the garment and its
     boundary (``prepare``), the tracking's mean render loss and vertex error (``track``), the recovered fabric, the
-    method that recovered it and each method's errors in the ratios κ/ρ where the truth is known (``estimate``), and
-    each compared method's scalar scores (``evaluate``)."""
+    method that recovered it, its errors in the ratios κ/ρ and each method's where the truth is known
+    (``estimate``), and each compared method's scalar scores (``evaluate``)."""
     out = Path(out)
     metrics: dict = {}
     prepared = _read(out / "prepare" / "prepare.json")
@@ -259,9 +259,11 @@ def point_metrics(out: Path) -> dict:
         }
     estimated = _read(out / "estimate" / "estimate.json")
     if estimated is not None:
+        best = [m for m in estimated["methods"].values() if m["final"] == estimated["recovered"]]
         metrics["estimate"] = {
             "recovered": estimated["recovered"],
             "recovered_by": estimated["recovered_by"],
+            "recovered_ratio_errors": best[0]["ratio_errors"] if best else None,
             "ratio_errors": {
                 name: method["ratio_errors"]
                 for name, method in estimated["methods"].items()
@@ -285,12 +287,11 @@ def _headline(entry: dict) -> dict[str, float]:
     """A point's figures for the summary: the stiffness ratios' errors (%) of the recovered fabric, or the tracking's
     render loss where nothing was estimated."""
     metrics = entry.get("metrics") or {}
-    errors = metrics.get("estimate", {}).get("ratio_errors", {})
-    by = metrics.get("estimate", {}).get("recovered_by")
-    if by in errors:
+    errors = metrics.get("estimate", {}).get("recovered_ratio_errors")
+    if errors is not None:
         return {
-            "κ_s/ρ error %": 100 * errors[by]["kappa_s_over_rho"],
-            "κ_b/ρ error %": 100 * errors[by]["kappa_b_over_rho"],
+            "κ_s/ρ error %": 100 * errors["kappa_s_over_rho"],
+            "κ_b/ρ error %": 100 * errors["kappa_b_over_rho"],
         }
     if "estimate" in metrics:
         recovered = metrics["estimate"]["recovered"]
