@@ -80,15 +80,16 @@ def parse_fabric(text: str) -> tuple[float, float]:
         ValueError: not two numbers, or one outside the range; the message names the form.
     """
     parts = str(text).split(":")
+    form = f"a fabric is KAPPA_S:KAPPA_B, two stiffness multipliers in 0.1–8 such as 1:1 or 4:0.5; got {text!r}"
     try:
         kappa_s, kappa_b = (float(p) for p in parts)
-        FabricParameters(SYNTHETIC_FABRIC.density, kappa_s, kappa_b)  # checks the range
-    except ValueError as error:
-        detail = f" ({error})" if len(parts) == 2 else ""
-        raise ValueError(
-            f"a fabric is KAPPA_S:KAPPA_B, two stiffness multipliers in 0.1–8 such as 1:1 or 4:0.5; got {text!r}"
-            + detail
-        ) from None
+    except ValueError:
+        raise ValueError(form) from None
+    try:
+        FabricParameters(SYNTHETIC_FABRIC.density, kappa_s, kappa_b)  # the paper's ranges
+    except ValueError:
+        outside = [f"{n} = {v:g}" for n, v in (("κ_s", kappa_s), ("κ_b", kappa_b)) if not 0.1 <= v <= 8.0]
+        raise ValueError(f"{form}: {', '.join(outside) or 'a value'} lies outside 0.1–8") from None
     return kappa_s, kappa_b
 
 
