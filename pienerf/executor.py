@@ -40,6 +40,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
+
 from pienerf.output_files import atomic_path, staged_folder, stale_staging_folders, write_json
 
 __all__ = [
@@ -343,6 +345,8 @@ def _start_ray(ray, config: ExecutorConfig) -> bool:
         else:
             ray.init(
                 num_cpus=config.local_cpus,
+                # the GPUs torch sees (CUDA_VISIBLE_DEVICES honoured), so a CUDA point's num_gpus=1 can be met
+                num_gpus=torch.cuda.device_count() if config.device == "cuda" else None,
                 include_dashboard=False,
                 _node_ip_address="127.0.0.1",
                 log_to_driver=True,
