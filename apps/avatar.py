@@ -521,10 +521,11 @@ def batch_command(args: argparse.Namespace) -> int:
         config = dataclasses.replace(config, frames=args.frames)
     if args.executor == "ray":
         require_ray()
-    backend.init(args.device)
-    executor = ExecutorConfig(
-        args.executor, backend.current_device(), address=args.ray_address, max_retries=args.retries
-    )
+    if args.executor == "ray":  # the points run in Ray's workers, which may be on other machines
+        device = args.device or backend.default_device()
+    else:
+        device = backend.init(args.device)
+    executor = ExecutorConfig(args.executor, device, address=args.ray_address, max_retries=args.retries)
     function = functools.partial(batch.run_batch_point, config=config, device=executor.device, exact=args.exact)
     extra = {"smoke": args.smoke, "frames": config.frames}
     try:

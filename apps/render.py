@@ -190,11 +190,12 @@ def _main(argv: list[str] | None) -> int:
                 require_ray()
         elif args.executor != "local" or args.ray_address is not None:
             raise ScenarioError("--executor and --ray-address choose how the points of a --sweep run; add --sweep")
-        backend.init(args.device)
+        if args.sweep and args.executor == "ray":  # the points run in Ray's workers, which may be on other machines
+            device = args.device or backend.default_device()
+        else:
+            device = backend.init(args.device)
         if args.sweep:
-            config = ExecutorConfig(
-                args.executor, backend.current_device(), address=args.ray_address, max_retries=args.retries
-            )
+            config = ExecutorConfig(args.executor, device, address=args.ray_address, max_retries=args.retries)
     except ExecutorError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -335,29 +335,41 @@ def _run_local(todo, function, root, config, run_id, progress, finish) -> None:
 
 
 def _start_ray(ray, config: ExecutorConfig) -> bool:
-    """Connect to the cluster or start a local Ray; returns whether this call started it (and so shuts it down)."""
-    if ray.is_initialized():
-        return False
-    address = config.address or os.environ.get("RAY_ADDRESS")
-    try:
-        if address:
-            ray.init(address=address, log_to_driver=True)
-        else:
-            ray.init(
-                num_cpus=config.local_cpus,
-                # the GPUs torch sees (CUDA_VISIBLE_DEVICES honoured), so a CUDA point's num_gpus=1 can be met
-                num_gpus=torch.cuda.device_count() if config.device == "cuda" else None,
-                include_dashboard=False,
-                _node_ip_address="127.0.0.1",
-                log_to_driver=True,
-            )
-    except (ConnectionError, RuntimeError, ValueError) as error:
-        where = f"the Ray cluster at {address}" if address else "a local Ray"
+    """Connect to the cluster or start a local Ray, unless this process already has; returns whether this call
+    started it (and so shuts it down).
+
+    Raises:
+        ExecutorError: the cluster cannot be reached or started, or a CUDA run finds no GPU in it.
+    """
+    started = not ray.is_initialized()
+    if started:
+        address = config.address or os.environ.get("RAY_ADDRESS")
+        try:
+            if address:
+                ray.init(address=address, log_to_driver=True)
+            else:
+                ray.init(
+                    num_cpus=config.local_cpus,
+                    # the GPUs torch sees (CUDA_VISIBLE_DEVICES honoured), so a CUDA point's num_gpus=1 can be met
+                    num_gpus=torch.cuda.device_count() if config.device == "cuda" else None,
+                    include_dashboard=False,
+                    _node_ip_address="127.0.0.1",
+                    log_to_driver=True,
+                )
+        except (ConnectionError, RuntimeError, ValueError) as error:
+            where = f"the Ray cluster at {address}" if address else "a local Ray"
+            raise ExecutorError(
+                f"could not start or join {where} ({error}); check the address (ray start --head prints it) or "
+                "leave --ray-address and RAY_ADDRESS unset to start Ray on this machine"
+            ) from None
+    if config.device == "cuda" and ray.cluster_resources().get("GPU", 0) < 1:
+        if started:
+            ray.shutdown()
         raise ExecutorError(
-            f"could not start or join {where} ({error}); check the address (ray start --head prints it) or leave "
-            "--ray-address and RAY_ADDRESS unset to start Ray on this machine"
-        ) from None
-    return True
+            "the Ray cluster has no GPU, so no CUDA point could ever start; start its nodes with GPUs "
+            "(ray start --num-gpus N) or run with --device cpu"
+        )
+    return started
 
 
 def _run_ray(todo, function, root, config, run_id, progress, finish) -> None:
