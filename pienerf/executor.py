@@ -20,8 +20,9 @@ failed, waiting.
 
 Under Ray each point is one task asking for ``num_gpus=1`` on CUDA (Ray then shows the task only its GPU) or
 ``num_cpus`` on a CPU; the root folder must be one every worker can write (one machine, or a shared file system).
-Ray is started here when no cluster is given (``address`` or ``$RAY_ADDRESS``), on 127.0.0.1, and shut down after
-the run; a cluster, or a Ray already started in this process, is left running.
+Ray is started here when no cluster is given (``address`` or ``$RAY_ADDRESS``), announced as 127.0.0.1 with no
+dashboard (its processes still listen on every interface: Ray has no setting to bind them to one), and shut down
+after the run; a cluster, or a Ray already started in this process, is left running.
 """
 
 from __future__ import annotations
@@ -103,7 +104,7 @@ class ExecutorConfig:
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
         if not (isinstance(self.max_retries, int) and 0 <= self.max_retries <= 100):
-            raise ValueError(f"max_retries must be an integer in [0, 100], got {self.max_retries!r}")
+            raise ValueError(f"max_retries (--retries) must be an integer in [0, 100], got {self.max_retries!r}")
         if not (math.isfinite(self.cpus_per_point) and self.cpus_per_point > 0):
             raise ValueError(f"cpus_per_point must be a positive number of cores, got {self.cpus_per_point!r}")
 
