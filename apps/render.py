@@ -91,8 +91,8 @@ this machine or on the cluster of ``--ray-address`` (or ``$RAY_ADDRESS``); a poi
 Without ``--sweep`` the scenario renders as written, its ``[sweep]`` table unused.
 
 The work is :func:`pienerf.scenario.render_scenario` (:func:`pienerf.scenario.run_sweep` with ``--sweep``); this
-program parses the arguments, checks them before any work,
-prints the progress and turns the outcome into an exit status.
+program parses the arguments, checks them before any work, prints the progress and turns the outcome into an exit
+status.
 """
 
 from __future__ import annotations
