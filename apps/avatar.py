@@ -9,6 +9,8 @@
     python -m apps.avatar pipeline --capture my_capture --out out/mine [--smoke] [--device cuda]
     python -m apps.avatar prepare|track|estimate|appearance|animate|evaluate --capture my_capture --out out/mine
     python -m apps.avatar export-capture --out out/avatar --to my_capture [--push-depth-mm 3] [--up z]
+    python -m apps.avatar batch --captures cap_a cap_b --out out/batch [--stages prepare track] [--executor ray]
+    python -m apps.avatar batch --garments skirt long_skirt --motions walk jump --fabrics 1:1 4:0.5 --out out/study
 
 ``simulate`` dresses the procedural mannequin (:class:`physavatar.body.Body`) in a garment (default: the
 DiffCloth skirt ``skirt1252.obj`` from the shared data folder, or the embedded procedural skirt where that folder
@@ -27,6 +29,15 @@ user's own capture folder (``docs/capture.md``; :mod:`physavatar.pipeline.user_c
 garment's intersections with the body and chooses the boundary, and ``evaluate`` scores renders in cameras held out
 of the fit, as no truth exists; ``track`` runs ``prepare`` first when its folder is missing. Bad input prints one
 line and exits with status 2.
+
+``batch`` runs the stages over many avatars, one experiment folder ``--out/NAME`` per point
+(:mod:`physavatar.pipeline.batch`): one point per ``--captures`` folder, and/or one per combination of
+``--garments`` × ``--motions`` × ``--fabrics`` (``KAPPA_S:KAPPA_B``, the truth's stiffness multipliers) for a
+synthetic study; ``--stages`` picks the stages each point runs (default all). It writes ``batch.json`` and
+``batch.csv`` (each point's parameters, status, error and metrics) and ``batch_summary.png`` (a table and a chart of
+the points). ``--executor ray`` runs the points as Ray tasks (``--ray-address`` or ``$RAY_ADDRESS``, else a Ray on
+this machine); a failed point is retried ``--retries`` times, then recorded while the others go on (exit status 5);
+a rerun skips the points already complete (``docs/sweeps.md``).
 
 ``check`` validates a researcher's capture folder (``docs/capture.md``) before any heavy work
 (:func:`physavatar.capture.check_capture`): it prints a summary table when the capture is usable (exit status 0,
@@ -56,7 +67,9 @@ from physavatar import simulate as sim
 from physavatar.body import MOTIONS, Body, load_bvh, named_motion
 from physavatar.capture import check_capture
 from physavatar.garment import DEFAULT_GARMENT, default_garment, load_garment, place_on_body, select_boundary
+from physavatar.pipeline import batch
 from physavatar.result_files import Staging
+from pienerf.executor import EXECUTORS, ExecutorConfig, ExecutorError, require_ray, run_points
 from pienerf.output_files import atomic_path, check_output_folder
 
 SMOKE_FRAMES = 3
@@ -64,6 +77,8 @@ MAX_FRAMES = 10_000
 """Most frames ``--frames`` may ask for (6.7 minutes of motion at 25 fps): the frames are held in memory."""
 MAX_VIDEO_SIZE = 8192
 """Largest video width or height (px)."""
+POINTS_FAILED = 5
+"""Exit status of a ``batch`` some of whose points failed after their retries (``batch.json`` holds each error)."""
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -180,6 +195,20 @@ def _parser() -> argparse.ArgumentParser:
                 default="meshes",
                 help="images: fit the parameters to the capture's images through the rollout, no tracked meshes",
             )
+    run = commands.add_parser("batch", help="the stages over many captures or a synthetic study, one folder each")
+    run.add_argument("--out", type=Path, required=True, help="batch folder (one experiment folder per point)")
+    run.add_argument("--captures", type=Path, nargs="*", default=[], metavar="DIR", help="capture folders")
+    run.add_argument("--garments", nargs="*", default=[], help=f"study garments: {', '.join(batch.STUDY_GARMENTS)}")
+    run.add_argument("--motions", nargs="*", default=["walk"], help=f"study fitting motions: {', '.join(MOTIONS)}")
+    run.add_argument("--fabrics", nargs="*", default=["1:1"], metavar="KS:KB", help="study truths: κ_s:κ_b")
+    run.add_argument("--stages", nargs="*", default=None, help="the stages each point runs, in order (default all)")
+    run.add_argument("--exact", action="store_true", help="study: estimate from the true meshes, not the tracked")
+    run.add_argument("--device", choices=backend.DEVICES, default=None, help="default: cuda when present")
+    run.add_argument("--smoke", action="store_true", help="tiny sizes: a few frames, 4 views of 64 px")
+    run.add_argument("--frames", type=int, default=None, help="captured frames (default 24, the paper's)")
+    run.add_argument("--executor", choices=EXECUTORS, default="local", help="local (in turn, here) or ray (tasks)")
+    run.add_argument("--ray-address", default=None, help="Ray cluster (default $RAY_ADDRESS, else a local Ray)")
+    run.add_argument("--retries", type=int, default=2, help="attempts after the first for a point that fails")
     check = commands.add_parser("check", help="check a capture folder for problems before any heavy work")
     check.add_argument("capture", type=Path, metavar="CAPTURE", help="the capture folder (or its transforms.json)")
     return parser
@@ -476,6 +505,56 @@ def export_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def batch_command(args: argparse.Namespace) -> int:
+    """Run the batch's points; exit status 0, 5 when points failed, 130 interrupted."""
+    check_output_folder(args.out)
+    points: dict[str, dict] = {}
+    if args.captures:
+        stages = tuple(args.stages) if args.stages is not None else pipeline.CAPTURE_STAGES
+        points.update(batch.capture_points(args.captures, stages))
+    if args.garments:
+        stages = tuple(args.stages) if args.stages is not None else pipeline.STAGES
+        study = batch.study_points(args.garments, args.motions, args.fabrics, stages)
+        clash = sorted(set(study) & set(points))
+        if clash:
+            raise ValueError(f"capture folders and study points share the names {clash}; rename those folders")
+        points.update(study)
+    if not points:
+        raise ValueError("a batch needs --captures DIR [DIR ...] and/or --garments NAME [NAME ...] (a study)")
+    config = pipeline.PipelineConfig.smoke() if args.smoke else pipeline.PipelineConfig()
+    if args.frames is not None:
+        if not 3 <= args.frames <= MAX_FRAMES:
+            raise ValueError(f"--frames must lie in 3..{MAX_FRAMES}, got {args.frames}")
+        config = dataclasses.replace(config, frames=args.frames)
+    if args.executor == "ray":
+        require_ray()
+    if args.executor == "ray":  # the points run in Ray's workers, which may be on other machines
+        device = args.device or backend.default_device()
+    else:
+        device = backend.init(args.device)
+    executor = ExecutorConfig(args.executor, device, address=args.ray_address, max_retries=args.retries)
+    function = functools.partial(batch.run_batch_point, config=config, device=executor.device, exact=args.exact)
+    extra = {"smoke": args.smoke, "frames": config.frames}
+    try:
+        entries = run_points(points, function, args.out, executor, index=batch.BATCH_INDEX, extra=extra)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: {args.out / 'batch.json'} lists the points that finished; run the same command again to go "
+            "on (the complete points are skipped)",
+            file=sys.stderr,
+        )
+        return 130
+    summary = batch.plot_batch_summary(entries, args.out / batch.BATCH_SUMMARY, staging=atomic_path)
+    failed = [entry for entry in entries if entry["status"] == "failed"]
+    print(
+        f"wrote {args.out / 'batch.json'}, {args.out / 'batch.csv'}, {summary}: {len(entries) - len(failed)} of "
+        f"{len(entries)} points complete"
+    )
+    for entry in failed:
+        print(f"error: batch point {entry['name']} failed: {entry['error']}", file=sys.stderr)
+    return POINTS_FAILED if failed else 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
@@ -485,8 +564,10 @@ def main(argv: list[str] | None = None) -> int:
             return check_command(args)
         if args.command == "export-capture":
             return export_command(args)
+        if args.command == "batch":
+            return batch_command(args)
         return stage_command(args)
-    except (ValueError, FileNotFoundError, ModuleNotFoundError) as error:
+    except (ValueError, FileNotFoundError, ModuleNotFoundError, ExecutorError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -82,8 +82,17 @@ run: ``metrics.json`` records each check under ``expect`` and, where one fails (
 the exit status is 4 (:data:`EXPECTATION_FAILED`). ``--smoke`` checks ``[smoke.expect]`` over it, bounds derived for
 the smoke run's two steps (left out when ``--frames`` changes its length); a variant's ``expect`` overrides both.
 
-The work is :func:`pienerf.scenario.render_scenario`; this program parses the arguments, checks them before any work,
-prints the progress and turns the outcome into an exit status.
+A ``[sweep]`` table (a grid or a list of values of any scenario fields; ``docs/sweeps.md``) makes the scenario a
+family of points: ``--sweep`` renders every point into its own folder ``--out/pNNN`` (each written whole or not at
+all), ``sweep.json`` and ``sweep.csv`` (each point's values, status, error and metrics) and ``contact_sheet.png`` (every
+point's last frame); a rerun skips the points already complete. ``--executor ray`` runs the points as Ray tasks, on
+this machine or on the cluster of ``--ray-address`` (or ``$RAY_ADDRESS``); a point that fails is retried
+``--retries`` times and then recorded as failed while the others go on (exit status 5, :data:`POINTS_FAILED`).
+Without ``--sweep`` the scenario renders as written, its ``[sweep]`` table unused.
+
+The work is :func:`pienerf.scenario.render_scenario` (:func:`pienerf.scenario.run_sweep` with ``--sweep``); this
+program parses the arguments, checks them before any work, prints the progress and turns the outcome into an exit
+status.
 """
 
 from __future__ import annotations
@@ -95,8 +104,17 @@ import time
 from pathlib import Path
 
 from kernels import backend
+from pienerf.executor import EXECUTORS, ExecutorConfig, ExecutorError, require_ray
 from pienerf.output_files import OutputPathError, check_output_folder
-from pienerf.scenario import ScenarioError, failed_lines, load_scenario, render_scenario, require_video_encoder
+from pienerf.scenario import (
+    ScenarioError,
+    failed_lines,
+    load_scenario,
+    render_scenario,
+    require_video_encoder,
+    run_sweep,
+    sweep_points,
+)
 
 SOLVER_FAILED = 3
 """Exit status of a render whose solver failed so that a variant's result is wrong
@@ -106,11 +124,15 @@ EXPECTATION_FAILED = 4
 """Exit status of a render whose ``[expect]`` table failed (:func:`pienerf.scenario.check_expectations`); the outputs
 are written all the same."""
 
+POINTS_FAILED = 5
+"""Exit status of a ``--sweep`` some of whose points failed after their retries (``sweep.json`` holds each error);
+the other points are complete."""
+
 
 def main(argv: list[str] | None = None) -> int:
     """Render the scenario; exit status 0, 2 for bad input, 1 when writing failed, 3 when a variant's solver failed
-    (:data:`SOLVER_FAILED`), 4 when an ``[expect]`` check failed (:data:`EXPECTATION_FAILED`), 130 when
-    interrupted."""
+    (:data:`SOLVER_FAILED`), 4 when an ``[expect]`` check failed (:data:`EXPECTATION_FAILED`), 5 when points of a
+    ``--sweep`` failed (:data:`POINTS_FAILED`), 130 when interrupted."""
     try:
         return _main(argv)
     except KeyboardInterrupt:  # before the render began: nothing to keep
@@ -137,6 +159,24 @@ def _main(argv: list[str] | None) -> int:
         default=None,
         help="cache of scene renders and fitted NeRFs (default: $PIE_CACHE_DIR, else ~/.cache/pie-physavatar)",
     )
+    parser.add_argument(
+        "--sweep", action="store_true", help="render every point of the scenario's [sweep] table into --out/pNNN"
+    )
+    parser.add_argument(
+        "--executor",
+        choices=EXECUTORS,
+        default="local",
+        help="with --sweep: local (in this process, one point after another) or ray (each point a Ray task)",
+    )
+    parser.add_argument(
+        "--ray-address",
+        default=None,
+        help="with --executor ray: the cluster to join (ray start --head prints it; default $RAY_ADDRESS, else a Ray "
+        "started on this machine)",
+    )
+    parser.add_argument(
+        "--retries", type=int, default=2, help="with --sweep: attempts after the first for a point that fails"
+    )
     args = parser.parse_args(argv)
     try:
         scenario = load_scenario(args.scenario, smoke=args.smoke, frames=args.frames)
@@ -144,7 +184,21 @@ def _main(argv: list[str] | None) -> int:
         check_output_folder(args.out)
         if args.cache_dir is not None:
             check_output_folder(args.cache_dir, "--cache-dir")
-        backend.init(args.device)
+        if args.sweep:
+            sweep_points(scenario)  # a scenario without [sweep] is refused before any work
+            if args.executor == "ray":
+                require_ray()
+        elif args.executor != "local" or args.ray_address is not None:
+            raise ScenarioError("--executor and --ray-address choose how the points of a --sweep run; add --sweep")
+        if args.sweep and args.executor == "ray":  # the points run in Ray's workers, which may be on other machines
+            device = args.device or backend.default_device()
+        else:
+            device = backend.init(args.device)
+        if args.sweep:
+            config = ExecutorConfig(args.executor, device, address=args.ray_address, max_retries=args.retries)
+    except ExecutorError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     except OutputPathError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
@@ -154,6 +208,12 @@ def _main(argv: list[str] | None) -> int:
     except ValueError as error:
         print(f"error: {args.scenario}: {error}", file=sys.stderr)
         return 2
+    if args.sweep:
+        return _sweep(scenario, args, config)
+    if "sweep" in scenario:
+        print(
+            f"{args.scenario}: rendering the scenario as written; --sweep renders its [sweep] points", file=sys.stderr
+        )
     metrics_file, started = args.out / "metrics.json", time.time()
     try:
         metrics = render_scenario(scenario, args.out, cache_dir=args.cache_dir)
@@ -180,6 +240,26 @@ def _main(argv: list[str] | None) -> int:
     for line in failed_lines(metrics.get("expect")):
         print(f"error: {args.scenario}: [expect] {line}", file=sys.stderr)
     return EXPECTATION_FAILED if not metrics.get("expect", {}).get("passed", True) else 0
+
+
+def _sweep(scenario: dict, args: argparse.Namespace, config: ExecutorConfig) -> int:
+    """Render the sweep's points; exit status 0, 5 when points failed, 2 when Ray cannot start, 130 interrupted."""
+    try:
+        entries = run_sweep(scenario, args.out, config, cache_dir=args.cache_dir)
+    except KeyboardInterrupt:
+        print(
+            f"interrupted: {args.out / 'sweep.json'} lists the points that finished; run the same command again to go "
+            "on (the complete points are skipped)",
+            file=sys.stderr,
+        )
+        return 130
+    except ExecutorError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    failed = [entry for entry in entries if entry["status"] == "failed"]
+    for entry in failed:
+        print(f"error: {args.scenario}: sweep point {entry['name']} failed: {entry['error']}", file=sys.stderr)
+    return POINTS_FAILED if failed else 0
 
 
 if __name__ == "__main__":

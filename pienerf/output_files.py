@@ -3,20 +3,30 @@
 A program that runs for minutes and is then stopped (Ctrl-C, a full disk, a crash) must neither leave a truncated
 file where a reader expects a whole one nor lose what it finished. :func:`atomic_path` hands out a temporary file in
 the target's own folder and moves it over the target (``os.replace``, atomic on one file system) only once it is
-complete; :func:`write_json` writes a JSON file that way. :func:`check_output_folder` and :func:`check_output_file`
-refuse, up front, a path that could not be written.
+complete; :func:`write_json` writes a JSON file that way, and :func:`staged_folder` a whole folder (a temporary
+folder beside it, renamed into place once everything in it is written). :func:`check_output_folder` and
+:func:`check_output_file` refuse, up front, a path that could not be written.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["OutputPathError", "atomic_path", "check_output_file", "check_output_folder", "write_json"]
+__all__ = [
+    "OutputPathError",
+    "atomic_path",
+    "check_output_file",
+    "check_output_folder",
+    "staged_folder",
+    "stale_staging_folders",
+    "write_json",
+]
 
 
 class OutputPathError(ValueError):
@@ -48,6 +58,44 @@ def write_json(path: Path | str, value, **dump_options) -> None:
     :func:`json.dump` (``default=str`` for paths and the like)."""
     with atomic_path(path) as temporary, open(temporary, "w") as file:
         json.dump(value, file, indent=2, **dump_options)
+
+
+@contextmanager
+def staged_folder(path: Path | str) -> Iterator[Path]:
+    """A temporary folder beside ``path`` (``.NAME.XXXX.partial``) to write a whole result folder into.
+
+    On a clean exit of the ``with`` block the folder takes ``path``'s place: an earlier folder there is first moved
+    aside and removed once the new one is in place, so a reader sees the old folder or the new one, never a mix. On
+    any exception (``KeyboardInterrupt`` included) the temporary folder is removed and ``path`` is left as it was. A
+    process killed inside the block leaves its temporary folder behind; :func:`stale_staging_folders` finds those.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".partial"))
+    try:
+        yield temporary
+        os.chmod(temporary, 0o755)  # mkdtemp makes it owner-only; a result folder is for everyone to read
+        if path.exists():
+            aside = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old"))
+            os.replace(path, aside / path.name)
+            os.replace(temporary, path)
+            shutil.rmtree(aside, ignore_errors=True)
+        else:
+            os.replace(temporary, path)
+    except BaseException:
+        shutil.rmtree(temporary, ignore_errors=True)
+        raise
+
+
+def stale_staging_folders(path: Path | str) -> list[Path]:
+    """The temporary folders :func:`staged_folder` left beside ``path`` when its process was killed (``.partial``)
+    or stopped between the two renames (``.old``)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        return []
+    return sorted(
+        p for suffix in (".partial", ".old") for p in path.parent.glob(f".{path.name}.*{suffix}") if p.is_dir()
+    )
 
 
 def _nearest_existing(path: Path) -> Path:

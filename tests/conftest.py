@@ -68,3 +68,16 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder {SHARED_DATA} is absent on this machine")
     return SHARED_DATA
+
+
+@pytest.fixture(scope="module")
+def local_ray(request):
+    """A Ray of 2 CPUs on 127.0.0.1 for the tests of one module, shut down after them; skips where Ray is not
+    installed (the optional extra ``.[cluster]``). The module's own functions travel to the workers by value, as a
+    script's do, since the workers do not import the test modules."""
+    ray = pytest.importorskip("ray", reason="Ray is not installed: pip install -e '.[cluster]'")
+    ray.cloudpickle.register_pickle_by_value(request.module)
+    ray.init(num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1", log_to_driver=False)
+    yield ray
+    ray.shutdown()
+    ray.cloudpickle.unregister_pickle_by_value(request.module)

@@ -4,10 +4,23 @@ a user's own capture folder (prepare → track → ... → evaluate, no truth ne
 - :mod:`~physavatar.pipeline.stages`: the stages, their settings and output folders, and :func:`run`;
 - :mod:`~physavatar.pipeline.user_capture`: the stages that differ on a user's capture, and :func:`run_capture`;
 - :mod:`~physavatar.pipeline.export`: the synthetic capture written as a user's capture folder, with defects;
+- :mod:`~physavatar.pipeline.batch`: the stages over many capture folders or a synthetic study (garments × motions
+  × fabrics), one point at a time, and the batch's summary plot;
 - :mod:`~physavatar.pipeline.report`: what the stages write for people to read: the markdown report, its plots and
   image strips.
 """
 
+from physavatar.pipeline.batch import (
+    BATCH_INDEX,
+    BATCH_SUMMARY,
+    STUDY_GARMENTS,
+    capture_points,
+    parse_fabric,
+    plot_batch_summary,
+    point_metrics,
+    run_batch_point,
+    study_points,
+)
 from physavatar.pipeline.export import export_capture_folder
 from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
 from physavatar.pipeline.stages import (
@@ -39,6 +52,8 @@ from physavatar.pipeline.user_capture import (
 )
 
 __all__ = [
+    "BATCH_INDEX",
+    "BATCH_SUMMARY",
     "CAPTURE_OUTPUTS",
     "CAPTURE_STAGES",
     "COARSE_MESH_TRACKING",
@@ -46,6 +61,7 @@ __all__ = [
     "OUTPUTS",
     "SMOKE_NOTE",
     "STAGES",
+    "STUDY_GARMENTS",
     "PipelineConfig",
     "PipelineInterrupted",
     "StageInputs",
@@ -58,14 +74,20 @@ __all__ = [
     "evaluate_capture",
     "export_capture_folder",
     "camera_views",
+    "capture_points",
+    "parse_fabric",
+    "plot_batch_summary",
+    "point_metrics",
     "plot_estimation",
     "plot_report",
     "prepare",
     "report_markdown",
     "run",
+    "run_batch_point",
     "run_capture",
     "stage_inputs",
     "stderr_progress",
+    "study_points",
     "track_stage",
     "write_strip",
 ]

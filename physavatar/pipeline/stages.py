@@ -167,6 +167,7 @@ class PipelineConfig:
         image_size: ``(width, height)`` of every view, px.
         ao_samples: sky-occlusion rays per pixel of the capture.
         skirt_rings, skirt_segments: resolution of the procedural skirt.
+        skirt_length: the procedural skirt's length from the hips, m.
         fabric: material and solver settings of the truth and of every fit (:data:`SYNTHETIC_FABRIC`).
         start: where estimation starts (the true κ's are those of ``fabric``).
         random_seed: seed of the "w/o physics" parameters, drawn log-uniformly from the paper's κ range.
@@ -191,6 +192,7 @@ class PipelineConfig:
     ao_samples: int = 16
     skirt_rings: int = 10
     skirt_segments: int = 28
+    skirt_length: float = 0.40
     fabric: ClothConfig = SYNTHETIC_FABRIC
     start: FabricParameters = FabricParameters(SYNTHETIC_FABRIC.density, 2.0, 0.5)
     random_seed: int = 3
@@ -208,6 +210,8 @@ class PipelineConfig:
                 raise ValueError(f"{name} must be one of {', '.join(MOTIONS)}, got {getattr(self, name)!r}")
         if self.frames < 3 or self.eval_frames < 2:
             raise ValueError(f"frames ({self.frames}) must be >= 3 and eval_frames ({self.eval_frames}) >= 2")
+        if not (math.isfinite(self.skirt_length) and 0.1 <= self.skirt_length <= 0.8):
+            raise ValueError(f"skirt_length must lie in 0.1–0.8 m, got {self.skirt_length!r}")
         if self.cameras < 1 or min(self.image_size) < 16:
             raise ValueError(f"need >= 1 camera and images of >= 16 px, got {self.cameras} and {self.image_size}")
 
@@ -269,7 +273,9 @@ def stderr_progress(stage: str, message: str) -> None:
 
 def _scene(config: PipelineConfig):
     body = Body.mannequin(spacing=0.03)
-    garment = procedural_skirt(body, rings=config.skirt_rings, segments=config.skirt_segments)
+    garment = procedural_skirt(
+        body, rings=config.skirt_rings, segments=config.skirt_segments, length=config.skirt_length
+    )
     boundary = select_boundary(garment, body, mode="waist")
     return body, garment, boundary
 

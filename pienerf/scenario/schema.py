@@ -7,7 +7,9 @@ written; :func:`scenario_outputs`, :func:`frame_count` and :func:`volume_sample_
 
 from __future__ import annotations
 
+import copy
 import importlib.util
+import itertools
 import math
 import re
 from pathlib import Path
@@ -34,11 +36,15 @@ __all__ = [
     "MAX_TIME",
     "NERF_WARPS",
     "OUTPUT_DEFAULTS",
+    "MAX_SWEEP_POINTS",
+    "SWEEP_MODES",
     "ScenarioError",
+    "apply_sweep_point",
     "frame_count",
     "load_scenario",
     "require_video_encoder",
     "scenario_outputs",
+    "sweep_points",
     "unmet_requirement",
     "volume_sample_frames",
 ]
@@ -92,6 +98,7 @@ _SCHEMA = {
         "nerf": dict,
         "warp_error": dict,
         "expect": dict,
+        "sweep": dict,
     },
     "scene": {"name": str, "floor": bool, "default_pins": bool},
     "material": {key: setting_range(Material, key) for key in ("model", "young_modulus", "poisson_ratio", "density")},
@@ -262,6 +269,7 @@ def load_scenario(path: Path | str, smoke: bool = False, frames: int | None = No
     try:
         _check_table(scenario, "", "")
         _check_structure(scenario)
+        _check_sweep(scenario)
     except ScenarioError as error:
         raise ScenarioError(f"{path}: {error}") from None
     if smoke or frames is not None:  # bounds measured on the full run
@@ -298,6 +306,11 @@ def load_scenario(path: Path | str, smoke: bool = False, frames: int | None = No
             )
         solver["frames"] = frames
         _shrink_volume_samples(scenario, f"--frames {frames}")
+    if "sweep" in scenario and (smoke or frames is not None):  # each point as the shrunk scenario would run
+        try:
+            sweep_points(scenario)
+        except ScenarioError as error:
+            raise ScenarioError(f"{path}: {error}") from None
     return scenario
 
 
@@ -575,3 +588,146 @@ def volume_sample_frames(scenario: dict) -> list[dict]:
             )
         samples.append({"label": f"t = {spec['time']:g} s", **spec, "frame": frame})
     return sorted(samples, key=lambda s: s["frame"])
+
+
+SWEEP_MODES = {
+    "grid": "every combination of the fields' values",
+    "list": "the i-th value of every field together (arrays of one length)",
+}
+"""How a ``[sweep]`` table combines its fields' values into points."""
+
+MAX_SWEEP_POINTS = 10_000
+"""Most points a ``[sweep]`` table may make."""
+
+_UNSWEPT = {
+    "sweep": "a sweep cannot sweep itself",
+    "smoke": "--smoke applies [smoke] before the sweep; sweep the field it sets instead",
+}
+
+
+def _sweep_fields(table: dict, prefix: str = "") -> list[tuple[str, object]]:
+    """``(dotted field, values)`` of a ``[sweep]`` table, its ``mode`` left out: ``material.young_modulus = [...]``
+    (TOML's dotted keys, which make nested tables) and ``"material.young_modulus" = [...]`` (one quoted key) alike."""
+    fields = []
+    for key, value in table.items():
+        if not prefix and key == "mode":
+            continue
+        path = f"{prefix}.{key}" if prefix else key
+        if isinstance(value, dict):
+            fields += _sweep_fields(value, path)
+        else:
+            fields.append((path, value))
+    return fields
+
+
+def _check_sweep_field(path: str) -> None:
+    """A swept field must name a key of one of the scenario's tables (``TABLE.KEY``, ``nerf.steps``…)."""
+    parts = path.split(".")
+    top = _SCHEMA[""]
+    example = "material.young_modulus = [1.0e5, 1.0e6]"
+    if parts[0] in _UNSWEPT:
+        raise ScenarioError(f"'sweep.{path}': {_UNSWEPT[parts[0]]}")
+    if parts[0] not in top:
+        raise ScenarioError(
+            f"'sweep.{path}' names no scenario field: '{parts[0]}' is not a table of the scenario; valid tables: "
+            f"{', '.join(sorted(k for k, v in top.items() if v is dict and k not in _UNSWEPT))} "
+            f"(write TABLE.KEY = [values], e.g. {example})"
+        )
+    if top[parts[0]] is list:
+        raise ScenarioError(
+            f"'sweep.{path}': [[{parts[0]}]] is an array of tables, whose entries a sweep cannot address; sweep a "
+            f"field of a table such as {example}"
+        )
+    if top[parts[0]] is not dict or len(parts) != 2:
+        raise ScenarioError(
+            f"'sweep.{path}' must name one key of a table as TABLE.KEY (e.g. {example}), got {len(parts)} parts"
+        )
+    if parts[1] not in _SCHEMA[parts[0]]:
+        raise ScenarioError(
+            f"'sweep.{path}': unknown field '{parts[1]}' of [{parts[0]}]; valid fields: "
+            f"{', '.join(sorted(_SCHEMA[parts[0]]))}"
+        )
+
+
+def _check_sweep(scenario: dict) -> None:
+    """The ``[sweep]`` table's form: its mode, each field a key of a table with a non-empty array of values, the
+    point count; each point's values are checked as the scenario's own by :func:`sweep_points`."""
+    sweep = scenario.get("sweep")
+    if sweep is None:
+        return
+    mode = sweep.get("mode", "grid")
+    if mode not in SWEEP_MODES:
+        raise ScenarioError(
+            f"'sweep.mode' must be one of: {'; '.join(f'{k!r} ({v})' for k, v in SWEEP_MODES.items())}; got {mode!r}"
+        )
+    fields = _sweep_fields(sweep)
+    if not fields:
+        raise ScenarioError(
+            "[sweep] names no field to sweep; add one such as material.young_modulus = [1.0e5, 1.0e6] under it"
+        )
+    for path, values in fields:
+        _check_sweep_field(path)
+        if not isinstance(values, list):
+            raise ScenarioError(
+                f"'sweep.{path}' must be an array of the values to sweep, e.g. [{values!r}, ...], got {values!r} "
+                f"(a single value belongs in [{path.split('.')[0]}] itself)"
+            )
+        if not values:
+            raise ScenarioError(f"'sweep.{path}' is an empty array; give it at least one value to sweep")
+    if mode == "list":
+        lengths = {path: len(values) for path, values in fields}
+        if len(set(lengths.values())) > 1:
+            raise ScenarioError(
+                '[sweep] mode = "list" takes the i-th value of every field together, so every array needs the '
+                f'same length; got {", ".join(f"{p}: {n}" for p, n in lengths.items())} (or use mode = "grid")'
+            )
+    count = math.prod(len(v) for _, v in fields) if mode == "grid" else len(fields[0][1])
+    if count > MAX_SWEEP_POINTS:
+        raise ScenarioError(f"[sweep] makes {count} points, at most {MAX_SWEEP_POINTS}: sweep fewer values")
+    sweep_points(scenario)
+
+
+def sweep_points(scenario: dict) -> dict[str, dict]:
+    """The points of the scenario's ``[sweep]`` table, in order: point name (``p000``, ``p001``…, the folder it is
+    written to) → its values (dotted field → value). Each point's scenario is checked as a scenario file is.
+
+    Raises:
+        ScenarioError: the scenario has no ``[sweep]``, or a point's value is wrong for its field (the message names
+            the point, the field and the value).
+    """
+    sweep = scenario.get("sweep")
+    if sweep is None:
+        raise ScenarioError("the scenario has no [sweep] table; add one (docs/sweeps.md) or run it without --sweep")
+    fields = _sweep_fields(sweep)
+    names = [path for path, _ in fields]
+    if sweep.get("mode", "grid") == "grid":
+        combos = list(itertools.product(*(values for _, values in fields)))
+    else:
+        combos = list(zip(*(values for _, values in fields), strict=True))
+    width = max(3, len(str(len(combos) - 1)))
+    points = {f"p{i:0{width}d}": dict(zip(names, combo, strict=True)) for i, combo in enumerate(combos)}
+    for name, parameters in points.items():
+        apply_sweep_point(scenario, parameters, name)
+    return points
+
+
+def apply_sweep_point(scenario: dict, parameters: dict, name: str = "point") -> dict:
+    """A copy of ``scenario`` with each dotted field of ``parameters`` set to its value and without ``[sweep]``,
+    checked as a scenario file is.
+
+    Raises:
+        ScenarioError: a value is wrong for its field; the message names the point, the field, the value and the fix.
+    """
+    point = copy.deepcopy(scenario)
+    point.pop("sweep", None)
+    for path, value in parameters.items():
+        _check_sweep_field(path)
+        table, key = path.split(".")
+        point.setdefault(table, {})[key] = copy.deepcopy(value)
+    try:
+        _check_table(point, "", "")
+        _check_structure(point)
+    except ScenarioError as error:
+        values = ", ".join(f"{p} = {v!r}" for p, v in parameters.items())
+        raise ScenarioError(f"sweep point {name} ({values}): {error}; fix that value in the [sweep] table") from None
+    return point
