@@ -8,6 +8,9 @@ At the session's CPU size (the procedural skirt of 96 vertices). Needs Debian's 
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -140,7 +143,9 @@ def test_meshcat_page_pauses_the_walk_drags_the_hem_and_sets_the_bending(device,
                 _poll(page, app, lambda: False, 0.5)  # the page shows the garment at rest
                 pixel = page.evaluate(_FIND_HEM_PIXEL)
                 assert pixel is not None, "no pixel near the middle of the view shows the skirt's hem"
-                screenshot = tmp_path / "avatar.png" if kappa_b is not None else None
+                # PIE_SCREENSHOTS=DIR keeps the picture (docs/images/avatar_viewer.png is one, shown by the README)
+                shots = Path(os.environ.get("PIE_SCREENSHOTS", tmp_path))
+                screenshot = shots / "avatar_viewer.png" if kappa_b is not None else None
                 x, path = _drag_hem(page, app, pixel[:2], screenshot)
                 assert float(path[0]) >= 0.5 * float(path[1]), f"the hem followed {path[0]:.3f} m of {path[1]:.3f} m"
                 shapes.append(x)
@@ -157,7 +162,8 @@ def test_meshcat_page_pauses_the_walk_drags_the_hem_and_sets_the_bending(device,
             assert len(inside) > 50 and max(inside) == 0, f"{max(inside)} garment vertices went inside the body"
             assert "inside the body" in page.inner_text("#contact")
             assert "failed" not in " ".join(app.errors), app.errors
-            print(f"\navatar page: hem ring moved {1e3 * moved:.0f} mm by κb ×8; screenshot {tmp_path / 'avatar.png'}")
+            picture = shots / "avatar_viewer.png"
+            print(f"\navatar page: hem ring moved {1e3 * moved:.0f} mm by κb ×8; screenshot {picture}")
             browser.close()
     finally:
         app.close()
