@@ -72,10 +72,6 @@ class TrackConfig:
             stay the only geometric unknowns). 0 is the paper's one Gaussian per face, made for meshes whose faces
             cover a few pixels; on a coarse mesh a face spans many pixels and one elliptical blob cannot cover its
             triangle, so the silhouette and the pattern's edges pull the vertices off the surface.
-        first_geometry_iterations: Adam iterations on the first frame's vertices and colours after its appearance
-            (Eq. 4, Eq. 2's lengths those of the given mesh, tolerance included). 0 keeps the given first mesh, as
-            the paper, whose first mesh is a static reconstruction; a reconstruction that is off somewhere (dented
-            where it met the body) is refined towards what the first frame's views show.
     """
 
     first_iterations: int = 200
@@ -91,7 +87,6 @@ class TrackConfig:
     extrapolate: bool = True
     iso_tolerance: float = 0.0
     face_subdivisions: int = 0
-    first_geometry_iterations: int = 0
 
     def __post_init__(self):
         if self.first_iterations < 1 or self.iterations < 1:
@@ -103,8 +98,6 @@ class TrackConfig:
             raise ValueError("lambda_iso and lambda_normal must be >= 0 and weight_l1 in [0, 1]")
         if not 0.0 <= self.iso_tolerance < 1.0:
             raise ValueError(f"iso_tolerance ({self.iso_tolerance}) is a relative length change in [0, 1)")
-        if self.first_geometry_iterations < 0:
-            raise ValueError(f"first_geometry_iterations ({self.first_geometry_iterations}) must be >= 0")
         if not 0 <= self.face_subdivisions <= 3:
             raise ValueError(f"face_subdivisions ({self.face_subdivisions}) must be 0 to 3 (64 Gaussians per face)")
 
@@ -114,8 +107,7 @@ class TrackResult:
     """A tracked sequence.
 
     Attributes:
-        vertices: ``[T, V, 3]`` float64 garment vertices per frame, m (frame 0 is the given first mesh, refined with
-            :attr:`TrackConfig.first_geometry_iterations`).
+        vertices: ``[T, V, 3]`` float64 garment vertices per frame, m (frame 0 is the given first mesh).
         colors: ``[T, F, 3]`` each garment face's colour per frame (the mean of its Gaussians'; the input of
             appearance estimation).
         appearance: the garment Gaussians of the first frame (scales, opacities, frame edges), ``F·4^L`` of them
@@ -403,8 +395,11 @@ def track(
     times.append(time.perf_counter() - start)
     _report(progress, 0, frames, losses[-1], errors[-1], times[-1])
 
-    def fit_vertices(guess: torch.Tensor, colors: torch.Tensor, t: int, iterations: int):
-        """Eq. 4 on frame ``t`` by Adam on the vertices and colours, from ``guess``."""
+    # Later frames: vertices and colours.
+    for t in range(1, frames):
+        start = time.perf_counter()
+        previous = out_vertices[-1]
+        guess = previous + (previous - out_vertices[-2]) if config.extrapolate and t > 1 else previous
         x = guess.clone().requires_grad_(True)
         colors = colors.clone().requires_grad_(True)
         optimiser = torch.optim.Adam(
@@ -412,10 +407,10 @@ def track(
         )
         schedule = torch.optim.lr_scheduler.LambdaLR(
             optimiser,
-            lambda i: 0.1 ** (i / iterations),  # decays ten-fold over the frame
+            lambda i: 0.1 ** (i / config.iterations),  # decays ten-fold over the frame
         )
         target = capture.images[t].to(device, torch.float32)
-        for _ in range(iterations):
+        for _ in range(config.iterations):
             optimiser.zero_grad(set_to_none=True)
             loss = photometric_loss(gaussians.render(x, bodies[t], colors), target, config.weight_l1)
             total = (
@@ -426,26 +421,11 @@ def track(
             total.backward()
             optimiser.step()
             schedule.step()
-        return x.detach(), colors.detach(), loss.item()
-
-    if config.first_geometry_iterations:  # the first mesh is a reconstruction: refine it too (frame 0 again)
-        start = time.perf_counter()
-        x1, colors, losses[0] = fit_vertices(x1, colors, 0, config.first_geometry_iterations)
-        out_vertices[0] = x1
-        out_colors[0] = _per_face(colors, fine)
-        errors[0] = _error(x1, truth, 0)
-        times[0] += time.perf_counter() - start
-        _report(progress, 0, frames, losses[0], errors[0], times[0])
-
-    # Later frames: vertices and colours.
-    for t in range(1, frames):
-        start = time.perf_counter()
-        previous = out_vertices[-1]
-        guess = previous + (previous - out_vertices[-2]) if config.extrapolate and t > 1 else previous
-        x, colors, loss = fit_vertices(guess, colors, t, config.iterations)
+        x = x.detach()
+        colors = colors.detach()
         out_vertices.append(x)
         out_colors.append(_per_face(colors, fine))
-        losses.append(loss)
+        losses.append(loss.item())
         errors.append(_error(x, truth, t))
         times.append(time.perf_counter() - start)
         _report(progress, t, frames, losses[-1], errors[-1], times[-1])

@@ -59,7 +59,6 @@ from physavatar.capture import (
     load_capture_folder,
     load_truth,
     render_capture,
-    to_capture_axes,
     write_capture,
 )
 from physavatar.cloth import ClothConfig
@@ -78,9 +77,8 @@ from physavatar.fit.images import ImageFitConfig, estimate_images
 from physavatar.fit.regions import estimate_regions, garment_regions
 from physavatar.fit.tracking import TrackConfig, track
 from physavatar.garment import procedural_skirt, select_boundary
-from physavatar.intersections import resolve_intersections
 from physavatar.pipeline.report import SMOKE_NOTE, plot_estimation, plot_report, report_markdown, write_strip
-from physavatar.result_files import Staging, write_arrays, write_json, write_obj, write_text
+from physavatar.result_files import Staging, write_arrays, write_json, write_text
 
 __all__ = [
     "COARSE_MESH_TRACKING",
@@ -109,10 +107,6 @@ BODY_COLOR = (0.78, 0.74, 0.68)
 
 
 STAGES = ("capture", "track", "estimate", "appearance", "animate", "evaluate")
-GAP_OVER_CONTACT_DISTANCE = 2.0
-"""Clearance a user's garment is given from the frame-0 body (by the preparation, and again after the tracker
-refines the first frame), in barrier activation distances ``d̂``: a vertex closer than ``d̂`` would start inside the
-barrier's support, one at 0 would make it infinite."""
 FITS = ("meshes", "images")
 """What the estimate stage fits the simulation to: the tracked meshes (the paper's §3.2) or the capture's images."""
 IMAGE_FIT = "images_lbfgs_adjoint"
@@ -174,8 +168,6 @@ class PipelineConfig:
         fd_iterations: Algorithm 1's iterations (paper: 100).
         lm_iterations: Levenberg–Marquardt's iteration cap.
         image_iterations: L-BFGS iterations of the fit to the images (:mod:`physavatar.fit.images`).
-        capture_first_iterations: on a user's capture, the tracker's iterations refining the garment template at the
-            first frame (:func:`track_stage`); the synthetic experiment's first mesh is the truth and stays.
         tracking: settings of the tracker (:data:`COARSE_MESH_TRACKING`).
         seed: seed of everything else random (occlusion directions).
         smoke_size: a smoke-size run (:meth:`smoke`): every stage runs, but its scores and estimates measure nothing
@@ -199,7 +191,6 @@ class PipelineConfig:
     fd_iterations: int = 100
     lm_iterations: int = 12
     image_iterations: int = 15
-    capture_first_iterations: int = 200
     tracking: TrackConfig = COARSE_MESH_TRACKING
     seed: int = 0
     smoke_size: bool = False
@@ -233,7 +224,6 @@ class PipelineConfig:
             fd_iterations=2,
             lm_iterations=3,
             image_iterations=2,
-            capture_first_iterations=15,
             tracking=dataclasses.replace(COARSE_MESH_TRACKING, first_iterations=30, iterations=15),
             smoke_size=True,
         )
@@ -400,27 +390,16 @@ class StageInputs:
     up: str = "y"
 
 
-def stage_inputs(out: Path, capture: Path | None = None, views: bool = True, refined: bool = True) -> StageInputs:
+def stage_inputs(out: Path, capture: Path | None = None, views: bool = True) -> StageInputs:
     """The :class:`StageInputs` of the experiment in ``out``: the synthetic capture in ``out/capture``, or, with
     ``capture``, the user's capture folder as the preparation stage left it in ``out/prepare``. Without ``views``
-    no image is read (a stage that needs only the meshes).
-
-    On a user's capture the garment's first frame is the prepared template until the track stage has run, then the
-    tracker's refinement of it (``out/track/first.npz``, :func:`track_stage`); ``refined=False`` keeps the template.
-    """
+    no image is read (a stage that needs only the meshes)."""
     if capture is None:
         capture_dir = Path(out) / "capture"
         film = load_capture(capture_dir) if views else None
         given = _inputs(capture_dir / "inputs.npz")
         return StageInputs(film, given, load_truth(capture_dir))
     given = _inputs(Path(out) / "prepare" / "inputs.npz")
-    first = Path(out) / "track" / "first.npz"
-    if refined and first.is_file():
-        with np.load(first) as data:
-            vertices = torch.from_numpy(data["vertices"])
-        if vertices.shape != given["first_vertices"].shape:
-            raise ValueError(f"{first} was tracked from another capture than {out / 'prepare'}; run track again")
-        given = {**given, "first_vertices": vertices}
     record = json.loads((Path(out) / "prepare" / "prepare.json").read_text())
     held_out = tuple(record["held_out_cameras"])
     if not views:
@@ -452,29 +431,19 @@ def track_stage(
     capture: Path | None = None,
 ) -> Path:
     """Track the garment through ``out/capture`` (or the user's ``capture`` folder, prepared in ``out/prepare``);
-    writes ``out/track``, each file through ``staging``.
-
-    A user's garment template is a reconstruction, dented where it met the body and pushed back out by the
-    preparation: on a capture the tracker also refines the first frame from its views
-    (``config.capture_first_iterations`` of :attr:`TrackConfig.first_geometry_iterations`), the boundary vertices
-    kept on their targets, and the result, its intersections resolved as the preparation resolves them, becomes
-    the first frame and rest shape of every later stage (``out/track/first.npz`` and ``first.obj``).
-    """
+    writes ``out/track``, each file through ``staging``."""
     folder = Path(out) / "track"
-    inputs = stage_inputs(out, capture, refined=False)
+    inputs = stage_inputs(out, capture)
     film, given = inputs.film, inputs.given
     true_frames = None if inputs.truth is None else torch.as_tensor(inputs.truth["garment_frames"])
     _check_frames(film.images.shape[0], given["body_frames"].shape[0], "the capture", "the body frames")
-    tracking = config.tracking
-    if capture is not None:
-        tracking = dataclasses.replace(tracking, first_geometry_iterations=config.capture_first_iterations)
     result = track(
         film,
         given["first_vertices"],
         given["faces"],
         given["body_frames"],
         given["body_faces"],
-        tracking,
+        config.tracking,
         truth=true_frames,
         progress=lambda t, loss, err: say(
             progress,
@@ -483,37 +452,9 @@ def track_stage(
             + (f", error {err * 1e3:.2f} mm" if true_frames is not None else ""),
         ),
     )
-    record = {}
-    if capture is not None:
-        template, boundary = given["first_vertices"].to(torch.float64), given["boundary_index"]
-        gap = GAP_OVER_CONTACT_DISTANCE * config.fabric.contact_distance
-        first, report = resolve_intersections(
-            result.vertices[0], given["faces"], given["body_frames"][0], given["body_faces"], gap
-        )
-        first[boundary] = template[boundary]  # on their targets, as prepared (and resolved) from the template
-        result.vertices[0] = first
-        moved = torch.linalg.norm(first - template, dim=1)
-        say(progress, "track", f"first frame refined: moved {moved.mean() * 1e3:.2f} mm on average, "
-            f"{moved.max() * 1e3:.1f} mm at most; {report.summary()}")  # fmt: skip
-        record["first_frame"] = {
-            "iterations": tracking.first_geometry_iterations,
-            "moved_mean_m": float(moved.mean()),
-            "moved_max_m": float(moved.max()),
-            "intersections": dataclasses.asdict(report),
-        }
     folder.mkdir(parents=True, exist_ok=True)
     write_arrays(folder / "tracked.npz", staging, vertices=result.vertices.numpy(), colors=result.colors.numpy())
-    if "first_frame" in record:
-        write_arrays(folder / "first.npz", staging, vertices=result.vertices[0].numpy())
-        write_obj(
-            folder / "first.obj",
-            to_capture_axes(result.vertices[0], inputs.up),
-            given["faces"],
-            staging,
-            "the garment's first frame as the tracker refined it from the views",
-        )
     record = {
-        **record,
         "frames": int(result.vertices.shape[0]),
         "render_loss": result.render_loss.tolist(),
         "vertex_error_m": result.vertex_error.tolist() if true_frames is not None else None,

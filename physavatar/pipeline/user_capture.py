@@ -10,9 +10,6 @@ the earlier stages' outputs under the experiment folder ``out`` and writes its o
     template with its intersections with the frame-0 body resolved, in the capture's axes), ``boundary.txt`` (the
     Dirichlet vertices, given or chosen automatically, for the user to check) and ``prepare.json`` (what was
     moved, the boundary, the cameras held out of the fit).
-``track/``
-    as on the synthetic experiment, and ``first.npz`` / ``first.obj``: the first frame refined from its views
-    (:func:`~physavatar.pipeline.stages.track_stage`), the garment's first state and rest shape from then on.
 ``animate/``
     ``animation.npz``: the garment over the capture's body sequence for each method compared (full: the recovered
     parameters; w/o physics: random parameters; attached: every vertex carried by its nearest body triangle, the
@@ -47,7 +44,6 @@ from physavatar.intersections import resolve_intersections
 from physavatar.pipeline.report import SMOKE_NOTE, write_strip
 from physavatar.pipeline.stages import (
     BODY_COLOR,
-    GAP_OVER_CONTACT_DISTANCE,
     OUTPUTS,
     PipelineConfig,
     Progress,
@@ -80,13 +76,17 @@ CAPTURE_OUTPUTS: dict[str, tuple[str, ...]] = {
         "prepare/boundary.txt",
         "prepare/prepare.json",
     ),
-    "track": (*OUTPUTS["track"], "track/first.npz", "track/first.obj"),
-    **{stage: OUTPUTS[stage] for stage in ("estimate", "appearance")},  # the synthetic experiment's stages
+    **{stage: OUTPUTS[stage] for stage in ("track", "estimate", "appearance")},  # the synthetic experiment's stages
     "animate": ("animate/", "animate/animation.npz"),
     "evaluate": ("evaluate/", "evaluate/report.json", "evaluate/report.md", "evaluate/comparison.png"),
 }
 """What each stage writes under the experiment folder on a user's capture (``animate/`` also holds one OBJ per
 frame)."""
+
+GAP_OVER_CONTACT_DISTANCE = 2.0
+"""Clearance the preparation leaves between the garment and the frame-0 body, in barrier activation distances
+``d̂``: a vertex closer than ``d̂`` would start inside the barrier's support, one at 0 would make it infinite."""
+
 
 def prepare(
     config: PipelineConfig,
