@@ -1,6 +1,7 @@
 """PhysAvatar on a capture a user made by hand (files on disk, defects included), through the command line."""
 
 import json
+import math
 
 import imageio.v2 as imageio
 import numpy as np
@@ -39,8 +40,11 @@ def test_every_stage_runs_without_truth_and_writes_its_files(own):
     report = json.loads((out / "evaluate" / "report.json").read_text())
     assert report["held_out"] and report["cameras"] == [2]
     assert set(report["methods"]) == {"attached", "without_physics", "full"}
+    # At smoke size (64 px, a few iterations) the scores measure nothing but that each method renders where the
+    # garment is: the held-out view's colours of faces no fit view saw are a guess; full size: docs/benchmarks.md.
     for entry in report["methods"].values():
-        assert entry["psnr"] > 5.0 and 0.0 < entry["mask_iou"] <= 1.0 and -1.0 <= entry["ssim"] <= 1.0
+        assert math.isfinite(entry["psnr"]) and entry["psnr"] > 0.0 and -1.0 <= entry["ssim"] <= 1.0
+        assert 0.9 < entry["mask_iou"] <= 1.0
     assert "| PhysAvatar (full) |" in (out / "evaluate" / "report.md").read_text()
     assert imageio.imread(out / "evaluate" / "comparison.png").std() > 5.0
 
