@@ -161,6 +161,7 @@ def test_meshcat_page_pauses_the_walk_drags_the_hem_and_sets_the_bending(device,
             assert moved > 0.01, f"eight times the bending stiffness moved the dragged hem by {1e3 * moved:.1f} mm"
             assert len(inside) > 50 and max(inside) == 0, f"{max(inside)} garment vertices went inside the body"
             assert "inside the body" in page.inner_text("#contact")
+            assert page.title() == page.inner_text("#title") == "PhysAvatar garment drag-and-force demo"
             assert "failed" not in " ".join(app.errors), app.errors
             picture = shots / "avatar_viewer.png"
             print(f"\navatar page: hem ring moved {1e3 * moved:.0f} mm by κb ×8; screenshot {picture}")

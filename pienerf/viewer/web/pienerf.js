@@ -279,6 +279,10 @@
   function showControls(controls) {
     stats.controls = controls;
     const garment = controls.kind === "garment";
+    const title = garment ? "PhysAvatar garment drag-and-force demo" : "PIE-NeRF drag-and-force demo";
+    element("title").textContent = title;
+    document.title = title;
+    element("dragged").textContent = garment ? "garment" : "body";
     element("garment-panel").hidden = !garment;
     for (const node of document.querySelectorAll(".body-only")) node.hidden = garment;
     if (garment) {
