@@ -98,7 +98,9 @@ class ImageEstimate:
         density: ``ρ`` held fixed, kg/m³.
         kappa_s, kappa_b: ``[R]`` float64 factors, one per region (``R = 1``: the global fit).
         regions: ``[F]`` int64 region of each face, or ``None`` for the global fit.
-        loss: the image loss at the start, at each evaluation (line-search trials included) and at the end.
+        loss: the image loss at the start, at each evaluation (line-search trials included) and at the end (the
+            lowest evaluated: where the last line search left the parameters, or the best point before it when a
+            search cut short by the evaluation budget ended above it).
         history: the (global) parameters of each entry of ``loss``.
         evaluations: image losses evaluated (all but the first and the last with a backward).
         rejected: line-search trials out of the stiffness range or whose rollout did not converge (given
@@ -330,13 +332,20 @@ def estimate_images(
             return torch.tensor(REJECTED, dtype=F64)
         history.append(loss)
         parameters.append(now())
+        if loss < best[0]:
+            best[:] = [loss, log_s.detach().clone(), log_b.detach().clone()]
         if progress is not None:
             progress(len(history) - 1, loss, log_s.detach().exp().tolist(), log_b.detach().exp().tolist())
         return torch.tensor(loss * scale, dtype=F64)
 
+    best = [first, log_s.detach().clone(), log_b.detach().clone()]
     optimiser.step(closure)
     with torch.no_grad():
         history.append(evaluate(False))  # where the last line search left the parameters
+        if history[-1] > best[0]:  # a search cut short by the evaluation budget can end above its best point
+            log_s.copy_(best[1])
+            log_b.copy_(best[2])
+            history[-1] = best[0]
     parameters.append(now())
     return ImageEstimate(
         float(initial.density),

@@ -102,7 +102,9 @@ def test_estimate_from_the_images_reads_no_tracked_mesh(experiment, tmp_path):
     report = json.loads((tmp_path / "estimate" / "estimate.json").read_text())
     assert report["reference"] == "images" and report["recovered_by"] == "images_lbfgs_adjoint"
     fit = report["methods"]["images_lbfgs_adjoint"]
-    assert fit["loss"][-1] <= fit["loss"][0] and set(fit["ratio_errors"]) == {"kappa_s_over_rho", "kappa_b_over_rho"}
+    assert set(fit["ratio_errors"]) == {"kappa_s_over_rho", "kappa_b_over_rho"}
+    # the fit ends at the lowest loss it evaluated (at smoke size its last line search overshoots out of range)
+    assert fit["loss"][-1] == min(fit["loss"]) < fit["loss"][0] and fit["history"][-1] == report["recovered"]
     assert report["recovered"] == fit["final"] and (tmp_path / "estimate" / "estimate.png").stat().st_size > 0
     assert "from the images: 4 views, 6 frames" in result.stderr
     refused = _run("estimate", "--smoke", "--out", str(tmp_path), "--device", "cpu", "--fit", "images", "--exact")
