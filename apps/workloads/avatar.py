@@ -50,6 +50,17 @@ def _dressed(rings: int = 10, segments: int = 28):
     return body, skirt
 
 
+def _film(skirt, result, views: int, pixels: int, ao_samples: int, phase_deg: float = 0.0):
+    """The simulated ``result`` filmed as the pipeline films the skirt: a ring of ``views`` cameras at ``pixels``²
+    framed on the skirt, its checked albedo on the mannequin's colour, under the default light, at 25 fps."""
+    rig = CameraRig.ring(views, 2.2, 0.25, (0.0, 0.86, 0.0), pixels, pixels, fov_deg=24.0, phase_deg=phase_deg)
+    albedo = garment_albedo(skirt.vertices, skirt.faces, pattern="checks", bands=6)
+    return render_capture(
+        result.garment_frames, result.garment_faces, result.body_frames, result.body_faces, albedo,
+        (0.78, 0.74, 0.68), rig, Lighting(), 25.0, ao_samples=ao_samples,
+    )  # fmt: skip
+
+
 @workload("splat_fwd_bwd", "mesh-aligned Gaussians of the dressed mannequin: rasterize forward + backward")
 def bench_splat(device: str, size: str) -> Case:
     views, pixels = _VIEWS[size]
@@ -107,20 +118,7 @@ def bench_track_frame(device: str, size: str) -> Case:
     body, skirt = _dressed()
     clip = walk(body.skeleton, fps=25.0)
     result = simulate(skirt, body, clip, config=SYNTHETIC_FABRIC, frames=2, progress=False)
-    rig = CameraRig.ring(views, 2.2, 0.25, (0.0, 0.86, 0.0), pixels, pixels, fov_deg=24.0)
-    albedo = garment_albedo(skirt.vertices, skirt.faces, pattern="checks", bands=6)
-    film = render_capture(
-        result.garment_frames,
-        result.garment_faces,
-        result.body_frames,
-        result.body_faces,
-        albedo,
-        (0.78, 0.74, 0.68),
-        rig,
-        Lighting(),
-        25.0,
-        ao_samples=4,
-    )
+    film = _film(skirt, result, views, pixels, ao_samples=4)
     config = dataclasses.replace(COARSE_MESH_TRACKING, first_iterations=1, iterations=iterations)
     # Frames 0 and 1; the first frame's appearance pass is one iteration, so a repetition is one tracked frame.
     film = dataclasses.replace(film, images=film.images[:2], masks=film.masks[:2])
@@ -201,12 +199,7 @@ def bench_estimate_images(device: str, size: str) -> Case:
     clip = walk(body.skeleton, fps=25.0)
     boundary = select_boundary(skirt, body, mode="waist")
     result = simulate(skirt, body, clip, config=SYNTHETIC_FABRIC, frames=frames - 1, boundary=boundary, progress=False)
-    rig = CameraRig.ring(views, 2.2, 0.25, (0.0, 0.86, 0.0), pixels, pixels, fov_deg=24.0, phase_deg=20.0)
-    albedo = garment_albedo(skirt.vertices, skirt.faces, pattern="checks", bands=6)
-    film = render_capture(
-        result.garment_frames, result.garment_faces, result.body_frames, result.body_faces, albedo,
-        (0.78, 0.74, 0.68), rig, Lighting(), 25.0, ao_samples=4 if smoke else 16,
-    )  # fmt: skip
+    film = _film(skirt, result, views, pixels, ao_samples=4 if smoke else 16, phase_deg=20.0)
     truth = FabricParameters.from_config(SYNTHETIC_FABRIC)
     start = FabricParameters(truth.density, 2.0, 0.5)
     tracking = dataclasses.replace(COARSE_MESH_TRACKING, first_iterations=30) if smoke else COARSE_MESH_TRACKING

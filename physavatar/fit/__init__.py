@@ -49,7 +49,7 @@ from physavatar.fit.gaussians import (
     render_mesh_gaussians,
 )
 from physavatar.fit.images import ImageEstimate, ImageFitConfig, estimate_images, image_loss
-from physavatar.fit.regions import RegionEstimate, estimate_regions, garment_regions
+from physavatar.fit.regions import RegionEstimate, check_regions, estimate_regions, garment_regions
 from physavatar.fit.tracking import (
     AvatarGaussians,
     TrackConfig,
@@ -84,6 +84,7 @@ __all__ = [
     "albedo_loss",
     "baked_face_colors",
     "chamfer_fscore",
+    "check_regions",
     "estimate_analytic",
     "estimate_appearance",
     "estimate_finite_differences",

@@ -41,6 +41,7 @@ from physavatar.capture import Capture
 from physavatar.cloth import STIFFNESS_RANGE, ClothConfig, RolloutScene, rollout
 from physavatar.fit.estimation import FabricParameters
 from physavatar.fit.gaussians import photometric_loss
+from physavatar.fit.regions import check_regions
 from physavatar.fit.tracking import AvatarGaussians, TrackConfig, fit_first_frame
 
 __all__ = ["ImageEstimate", "ImageFitConfig", "estimate_images", "image_loss"]
@@ -253,13 +254,8 @@ def estimate_images(
     faces = torch.as_tensor(faces).long()
     count = 1
     if regions is not None:
-        regions = torch.as_tensor(regions).reshape(-1)
-        if regions.numel() != faces.shape[0] or regions.dtype.is_floating_point or int(regions.min()) < 0:
-            raise ValueError(f"regions must hold one non-negative integer per garment face ({faces.shape[0]})")
-        regions = regions.long()
+        regions = check_regions(regions, faces.shape[0])
         count = int(regions.max()) + 1
-        if bool((torch.bincount(regions, minlength=count) == 0).any()):
-            raise ValueError(f"regions must number 0..R-1 with every region holding a face; got {regions.unique()}")
     backend.init(device)
     dev = backend.torch_device()
     start = time.perf_counter()

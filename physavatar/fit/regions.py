@@ -24,7 +24,7 @@ from kernels import backend
 from physavatar.cloth import RolloutScene, rollout
 from physavatar.fit.estimation import EstimationProblem, FabricParameters
 
-__all__ = ["RegionEstimate", "estimate_regions", "garment_regions"]
+__all__ = ["RegionEstimate", "check_regions", "estimate_regions", "garment_regions"]
 
 
 def garment_regions(vertices: torch.Tensor, faces: torch.Tensor, count: int) -> torch.Tensor:
@@ -42,6 +42,24 @@ def garment_regions(vertices: torch.Tensor, faces: torch.Tensor, count: int) -> 
     azimuth = torch.atan2(centroid[:, 0], centroid[:, 2])  # [-π, π]
     sector = torch.floor((azimuth + math.pi) / (2.0 * math.pi) * int(count)).long()
     return sector.clamp(0, int(count) - 1)
+
+
+def check_regions(regions: torch.Tensor, face_count: int) -> torch.Tensor:
+    """``regions`` as ``[F]`` int64 after checking it numbers the garment's faces ``0..R−1``, each region non-empty.
+
+    Raises:
+        ValueError: not one non-negative integer per face, or a region without a face.
+    """
+    regions = torch.as_tensor(regions).reshape(-1)
+    if regions.numel() != face_count or regions.dtype.is_floating_point or int(regions.min()) < 0:
+        raise ValueError(f"regions must hold one non-negative integer per garment face ({face_count})")
+    regions = regions.long()
+    count = int(regions.max()) + 1
+    if bool((torch.bincount(regions, minlength=count) == 0).any()):
+        raise ValueError(
+            f"regions must number 0..R-1 with every region holding a face; got regions {regions.unique().tolist()}"
+        )
+    return regions
 
 
 @dataclass(frozen=True)
@@ -101,14 +119,8 @@ def estimate_regions(
         ValueError: ``regions`` not one integer per face, or an empty region; a rollout step that does not converge.
     """
     faces = problem.faces.long()
-    regions = torch.as_tensor(regions).reshape(-1)
-    if regions.numel() != faces.shape[0] or regions.dtype.is_floating_point or int(regions.min()) < 0:
-        raise ValueError(f"regions must hold one non-negative integer per garment face ({faces.shape[0]})")
+    regions = check_regions(regions, faces.shape[0])
     count = int(regions.max()) + 1
-    if bool((torch.bincount(regions.long(), minlength=count) == 0).any()):
-        raise ValueError(
-            f"regions must number 0..R-1 with every region holding a face; got regions {regions.unique().tolist()}"
-        )
     backend.init(device)
     dev = backend.torch_device()
     scene = RolloutScene(
@@ -121,7 +133,7 @@ def estimate_regions(
     )
     reference = problem.reference.to(dev, torch.float64)
     body, targets = problem.body_frames.to(dev, torch.float64), problem.boundary_targets.to(dev, torch.float64)
-    index = regions.long().to(dev)
+    index = regions.to(dev)
     start = time.perf_counter()
     log_s = torch.full((count,), math.log(initial.kappa_s), dtype=torch.float64, device=dev, requires_grad=True)
     log_b = torch.full((count,), math.log(initial.kappa_b), dtype=torch.float64, device=dev, requires_grad=True)
@@ -155,7 +167,7 @@ def estimate_regions(
     with torch.no_grad():
         history.append(float(loss_at()))  # where the last line search left the parameters
     return RegionEstimate(
-        regions.long().cpu(),
+        regions.cpu(),
         float(initial.density),
         log_s.detach().exp().cpu(),
         log_b.detach().exp().cpu(),

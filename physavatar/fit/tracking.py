@@ -178,10 +178,12 @@ def mesh_neighbours(faces: torch.Tensor, vertex_count: int):
     return edges, degree, face_pairs
 
 
-def _concat(garment: GaussianAppearance, body: GaussianAppearance, colors: torch.Tensor) -> GaussianAppearance:
-    """Garment Gaussians (with this frame's colours) followed by the body's."""
+def _concat(
+    garment: GaussianAppearance, body: GaussianAppearance, garment_colors: torch.Tensor, body_colors: torch.Tensor
+) -> GaussianAppearance:
+    """Garment Gaussians followed by the body's, each in the colours given."""
     return GaussianAppearance(
-        torch.cat([colors, body.colors]),
+        torch.cat([garment_colors, body_colors]),
         torch.cat([garment.log_scales, body.log_scales]),
         torch.cat([garment.opacity_logits, body.opacity_logits]),
         garment.normal_scale,
@@ -247,25 +249,23 @@ class AvatarGaussians:
     ) -> torch.Tensor:
         """``[C, H, W, 3]`` the avatar in every camera, the garment at ``[V, 3]`` ``garment_vertices`` (its
         Gaussians' colours replaced by ``colors`` ``[F·4^L, 3]`` when given); differentiable in both."""
-        vertices = torch.cat([self.subdivision(garment_vertices), body_vertices.to(garment_vertices)])
-        appearance = _concat(self.garment, self.body, self.garment.colors if colors is None else colors)
-        return render_mesh_gaussians(
-            vertices, self.faces, appearance, self.world_to_camera, self.intrinsics, self.width, self.height,
-            self.background,
-        )[0]  # fmt: skip
+        colors = self.garment.colors if colors is None else colors
+        return self._splat(garment_vertices, body_vertices, colors, self.body.colors, self.background)
 
     def garment_coverage(self, garment_vertices: torch.Tensor, body_vertices: torch.Tensor) -> torch.Tensor:
         """``[C, H, W]`` how much of each pixel the garment covers in front of the body: the avatar rendered with
         the garment white and the body and background black (the rendered counterpart of a garment mask)."""
+        white, black = torch.ones_like(self.garment.colors), torch.zeros_like(self.body.colors)
+        return self._splat(garment_vertices, body_vertices, white, black, torch.zeros_like(self.background))[..., 0]
+
+    def _splat(self, garment_vertices, body_vertices, garment_colors, body_colors, background) -> torch.Tensor:
+        """``[C, H, W, 3]``: the garment's Gaussians on its subdivision, then the body's, in these colours."""
         vertices = torch.cat([self.subdivision(garment_vertices), body_vertices.to(garment_vertices)])
-        white = torch.ones_like(self.garment.colors)
-        black = torch.zeros_like(self.body.colors)
-        appearance = _concat(self.garment, dataclasses.replace(self.body, colors=black), white)
-        image = render_mesh_gaussians(
+        appearance = _concat(self.garment, self.body, garment_colors, body_colors)
+        return render_mesh_gaussians(
             vertices, self.faces, appearance, self.world_to_camera, self.intrinsics, self.width, self.height,
-            torch.zeros_like(self.background),
+            background,
         )[0]  # fmt: skip
-        return image[..., 0]
 
     def detach(self) -> AvatarGaussians:
         """A copy whose appearances are detached from any graph."""

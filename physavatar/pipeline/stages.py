@@ -560,12 +560,7 @@ def estimate(
             "seconds": result.total_time or float(sum(result.wall_time)),
             "final": dataclasses.asdict(final),
             "loss": result.loss[-1],
-            "ratio_errors": None
-            if truth is None
-            else {
-                "kappa_s_over_rho": final.ratios[0] / truth.ratios[0] - 1.0,
-                "kappa_b_over_rho": final.ratios[1] / truth.ratios[1] - 1.0,
-            },
+            "ratio_errors": _ratio_errors(final, truth),
             "history": [dataclasses.asdict(p) for p in result.history],
             "loss_history": result.loss,
         }
@@ -629,12 +624,7 @@ def _estimate_from_images(
                 "iterations": result.evaluations,
                 "simulations": result.evaluations,
                 "final": dataclasses.asdict(final),
-                "ratio_errors": None
-                if truth is None
-                else {
-                    "kappa_s_over_rho": final.ratios[0] / truth.ratios[0] - 1.0,
-                    "kappa_b_over_rho": final.ratios[1] / truth.ratios[1] - 1.0,
-                },
+                "ratio_errors": _ratio_errors(final, truth),
                 "history": [dataclasses.asdict(p) for p in result.history],
             }
         },
@@ -648,6 +638,16 @@ def _estimate_from_images(
     write_json(folder / "estimate.json", report, staging)
     plot_estimation({IMAGE_FIT: result}, truth, folder / "estimate.png", staging, loss="image loss (Eq. 1 + mask)")
     return folder
+
+
+def _ratio_errors(found: FabricParameters, truth: FabricParameters | None) -> dict | None:
+    """The relative errors of the identifiable ratios κ_s/ρ and κ_b/ρ against the truth (``None`` without one)."""
+    if truth is None:
+        return None
+    return {
+        "kappa_s_over_rho": found.ratios[0] / truth.ratios[0] - 1.0,
+        "kappa_b_over_rho": found.ratios[1] / truth.ratios[1] - 1.0,
+    }
 
 
 def _values(values: list[float]) -> str:

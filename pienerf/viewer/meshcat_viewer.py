@@ -182,20 +182,12 @@ class MeshcatViewer:
         )
         send(SetObject(geometry, g.MeshLambertMaterial(vertexColors=True), _BODY).lower(), key="body")
         self._send_particles(sim)
-        marker = g.Sphere(0.25 * sim.particle_radius + 0.01)
-        send(SetObject(marker, g.MeshLambertMaterial(color=0xE03030), _TARGET).lower(), key="target")
-        send(SetProperty("visible", False, _TARGET).lower(), key="target visible")
-        # The camera: meshcat's /Cameras/default frame at the origin, its camera (in the y-up frame meshcat
-        # rotates it into) in front of the body, and the orbit target (set by the script) on the body's centre.
+        self._send_drag_marker(0.25 * sim.particle_radius + 0.01, 0xE03030)
+        # The camera in front of the body, the orbit target on the body's centre.
         centre = sim.centre.double().numpy()
         extent = float((sim.mesh_vertices.amax(0) - sim.mesh_vertices.amin(0)).max())
-        send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
         # meshcat's camera sees 75° vertically: from 1.2 extents away the body fills about half the view's height.
-        position = (centre + extent * np.array([0.0, 0.2, 1.15])).tolist()
-        send(
-            SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
-        )
-        self.server.send_json({"type": "view", "target": centre.tolist(), "position": position}, key="view")
+        self._send_camera(centre, centre + extent * np.array([0.0, 0.2, 1.15]))
         self._send_controls()
         self._show(app.render_mode)
         self.report("drag the body with the mouse; click it to pick a point for pin / push / cut")
@@ -410,14 +402,7 @@ class MeshcatViewer:
             send(_vertices_command(_PARTICLES, positions), key=f"vertices {_PARTICLES.lower()}", volatile=True)
         elif "nerf" in sim.render_backends:
             self._update_nerf(app)
-        target = sim.drag_target
-        if target is not None:
-            matrix = np.eye(4)
-            matrix[:3, 3] = target.double().cpu().numpy()
-            send(SetTransform(matrix, _TARGET).lower(), key="target transform", volatile=True)
-        if (target is not None) != self._target_shown:
-            self._target_shown = target is not None
-            send(SetProperty("visible", self._target_shown, _TARGET).lower(), key="target visible")
+        self._show_drag_target(sim.drag_target)
         report = sim.last_report
         seconds = sim.time_breakdown()["seconds_per_step"]
         self.server.send_json(
@@ -466,16 +451,9 @@ class MeshcatViewer:
         self._tint = sim.vertex_colors().numpy()
         body = g.TriangularMeshGeometry(sim.body_vertices().numpy(), sim.body.faces.numpy())
         send(SetObject(body, g.MeshLambertMaterial(color=0xC7BDAD), _AVATAR).lower(), key="avatar")
-        marker = g.Sphere(0.012)
-        send(SetObject(marker, g.MeshLambertMaterial(color=0x3050E0), _TARGET).lower(), key="target")
-        send(SetProperty("visible", False, _TARGET).lower(), key="target visible")
+        self._send_drag_marker(0.012, 0x3050E0)
         centre = sim.centre.double().numpy()
-        send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
-        position = (centre + np.array([0.0, 0.15, 1.6])).tolist()
-        send(
-            SetProperty("position", position, Path(("Cameras", "default", "rotated", "<object>"))).lower(), key="camera"
-        )
-        self.server.send_json({"type": "view", "target": centre.tolist(), "position": position}, key="view")
+        self._send_camera(centre, centre + np.array([0.0, 0.15, 1.6]))
         self.server.send_json({"type": "mode", "mode": "mesh"}, key="mode")
         self._send_controls()
         self.report("; ".join(sim.notes) + ". Drag the skirt with the mouse; click it to pick a vertex to pin")
@@ -549,6 +527,32 @@ class MeshcatViewer:
             known = ", ".join([*GARMENT_CONTROLS, "preset", "motion", "speed", "frame"])
             raise ValueError(f"unknown garment control {str(name)[:40]!r}; known: {known}")
 
+    def _send_drag_marker(self, radius: float, color: int) -> None:
+        """The drag marker: a sphere of ``radius`` (m) in ``color`` (0xRRGGBB), hidden until a drag starts."""
+        marker = g.Sphere(radius)
+        self.server.send(SetObject(marker, g.MeshLambertMaterial(color=color), _TARGET).lower(), key="target")
+        self.server.send(SetProperty("visible", False, _TARGET).lower(), key="target visible")
+
+    def _send_camera(self, centre: np.ndarray, position: np.ndarray) -> None:
+        """meshcat's /Cameras/default frame at the origin, its camera (in the y-up frame meshcat rotates it into) at
+        ``position`` and the orbit target (set by the page's script) at ``centre``, m."""
+        send, position = self.server.send, np.asarray(position, dtype=float).tolist()
+        send(SetTransform(np.eye(4), Path(("Cameras", "default"))).lower(), key="camera frame")
+        camera = Path(("Cameras", "default", "rotated", "<object>"))
+        send(SetProperty("position", position, camera).lower(), key="camera")
+        self.server.send_json({"type": "view", "target": centre.tolist(), "position": position}, key="view")
+
+    def _show_drag_target(self, target) -> None:
+        """The drag marker at ``target`` ``[3]`` (m), shown while there is one and hidden when it goes."""
+        send = self.server.send
+        if target is not None:
+            matrix = np.eye(4)
+            matrix[:3, 3] = target.double().cpu().numpy()
+            send(SetTransform(matrix, _TARGET).lower(), key="target transform", volatile=True)
+        if (target is not None) != self._target_shown:
+            self._target_shown = target is not None
+            send(SetProperty("visible", self._target_shown, _TARGET).lower(), key="target visible")
+
     def _update_garment(self, app) -> None:
         """This frame of a garment scene: garment and mannequin vertices, the tint when it changed, the drag
         marker, the status with the contact."""
@@ -560,14 +564,7 @@ class MeshcatViewer:
         if not np.array_equal(tint, self._tint):
             self._tint = tint
             send(_colors_command(_BODY, tint), key=f"colors {_BODY.lower()}")
-        target = sim.drag_target
-        if target is not None:
-            matrix = np.eye(4)
-            matrix[:3, 3] = target.double().cpu().numpy()
-            send(SetTransform(matrix, _TARGET).lower(), key="target transform", volatile=True)
-        if (target is not None) != self._target_shown:
-            self._target_shown = target is not None
-            send(SetProperty("visible", self._target_shown, _TARGET).lower(), key="target visible")
+        self._show_drag_target(sim.drag_target)
         contact = sim.contact()
         report = sim.last_report
         seconds = sim.time_breakdown()["seconds_per_step"]
