@@ -35,9 +35,9 @@ line and exits with status 2.
 ``--garments`` × ``--motions`` × ``--fabrics`` (``KAPPA_S:KAPPA_B``, the truth's stiffness multipliers) for a
 synthetic study; ``--stages`` picks the stages each point runs (default all). It writes ``batch.json`` and
 ``batch.csv`` (each point's parameters, status, error and metrics) and ``batch_summary.png`` (a table and a chart of
-the points). ``--executor ray`` runs the points as Ray tasks (``--ray-address`` or ``$RAY_ADDRESS``, else a Ray on
-this machine); a failed point is retried ``--retries`` times, then recorded while the others go on (exit status 5);
-a rerun skips the points already complete (``docs/sweeps.md``).
+the points). ``--executor ray`` runs the points on Ray actors, one per GPU (``--ray-address`` or ``$RAY_ADDRESS``,
+else a Ray on this machine); a failed point is retried ``--retries`` times, then recorded while the others go on (exit
+status 5); a rerun skips the points already complete (``docs/sweeps.md``).
 
 ``check`` validates a researcher's capture folder (``docs/capture.md``) before any heavy work
 (:func:`physavatar.capture.check_capture`): it prints a summary table when the capture is usable (exit status 0,

@@ -85,8 +85,8 @@ the smoke run's two steps (left out when ``--frames`` changes its length); a var
 A ``[sweep]`` table (a grid or a list of values of any scenario fields; ``docs/sweeps.md``) makes the scenario a
 family of points: ``--sweep`` renders every point into its own folder ``--out/pNNN`` (each written whole or not at
 all), ``sweep.json`` and ``sweep.csv`` (each point's values, status, error and metrics) and ``contact_sheet.png`` (every
-point's last frame); a rerun skips the points already complete. ``--executor ray`` runs the points as Ray tasks, on
-this machine or on the cluster of ``--ray-address`` (or ``$RAY_ADDRESS``); a point that fails is retried
+point's last frame); a rerun skips the points already complete. ``--executor ray`` runs the points on Ray actors (one
+per GPU), on this machine or on the cluster of ``--ray-address`` (or ``$RAY_ADDRESS``); a point that fails is retried
 ``--retries`` times and then recorded as failed while the others go on (exit status 5, :data:`POINTS_FAILED`).
 Without ``--sweep`` the scenario renders as written, its ``[sweep]`` table unused.
 
@@ -166,7 +166,7 @@ def _main(argv: list[str] | None) -> int:
         "--executor",
         choices=EXECUTORS,
         default="local",
-        help="with --sweep: local (in this process, one point after another) or ray (each point a Ray task)",
+        help="with --sweep: local (in this process, one point after another) or ray (Ray actors, one per GPU)",
     )
     parser.add_argument(
         "--ray-address",

@@ -18,8 +18,10 @@ other points go on. A rerun skips every point whose ``NAME/point.json`` is compl
 (resume); any other point runs again. Progress is a line whenever a point starts or ends: points done, running,
 failed, waiting.
 
-Under Ray each point is one task asking for ``num_gpus=1`` on CUDA (Ray then shows the task only its GPU) or
-``num_cpus`` on a CPU; the root folder must be one every worker can write (one machine, or a shared file system).
+Under Ray the points run on a pool of actors, one per GPU on CUDA (Ray shows each only its GPU, for its whole life)
+or one per ``cpus_per_point`` cores on a CPU, each handed the next waiting point as it finishes one, so a worker's
+imports, CUDA context and kernel loads are paid once per actor rather than once per point. The root folder must be
+one every worker can write (one machine, or a shared file system).
 Ray is started here when no cluster is given (``address`` or ``$RAY_ADDRESS``), announced as 127.0.0.1 with no
 dashboard (its processes still listen on every interface: Ray has no setting to bind them to one), and shut down
 after the run; a cluster, or a Ray already started in this process, is left running.
@@ -87,7 +89,8 @@ class ExecutorConfig:
         address: the Ray cluster to join (``ray://`` or ``host:port``), else ``$RAY_ADDRESS``, else a Ray started on
             this machine for the run.
         max_retries: attempts after the first for a point that raised or whose worker died.
-        cpus_per_point: CPU cores one point asks Ray for (a CUDA point asks for one as well).
+        cpus_per_point: CPU cores one point asks Ray for (``None``: one on a CPU; on CUDA the cluster's cores per GPU,
+            so that a point's torch and Taichi threads are not cut to the one core Ray gives by default).
         local_cpus: cores of the Ray started on this machine (``None``: all of them).
     """
 
@@ -95,7 +98,7 @@ class ExecutorConfig:
     device: str = "cpu"
     address: str | None = None
     max_retries: int = 2
-    cpus_per_point: float = 1.0
+    cpus_per_point: float | None = None
     local_cpus: int | None = None
 
     def __post_init__(self):
@@ -105,7 +108,7 @@ class ExecutorConfig:
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
         if not (isinstance(self.max_retries, int) and 0 <= self.max_retries <= 100):
             raise ValueError(f"max_retries (--retries) must be an integer in [0, 100], got {self.max_retries!r}")
-        if not (math.isfinite(self.cpus_per_point) and self.cpus_per_point > 0):
+        if self.cpus_per_point is not None and not (math.isfinite(self.cpus_per_point) and self.cpus_per_point > 0):
             raise ValueError(f"cpus_per_point must be a positive number of cores, got {self.cpus_per_point!r}")
 
 
@@ -180,6 +183,7 @@ def _run_point(function: PointFunction, name: str, parameters: dict, root: str, 
             "started": started,
             "host": socket.gethostname(),
             "pid": os.getpid(),
+            "gpus": os.environ.get("CUDA_VISIBLE_DEVICES"),  # under Ray, the GPU it gave this point's actor
         }
         write_json(folder / POINT_FILE, record, default=str)
     return record
@@ -373,30 +377,62 @@ def _start_ray(ray, config: ExecutorConfig) -> bool:
     return started
 
 
+class _PointRunner:
+    """A Ray actor that runs points one after another in one worker process: the process's imports, CUDA context and
+    kernel loads are paid once, and the GPU Ray gives it is its own for its whole life (a reused Ray *task* worker may
+    be handed another GPU than the one its CUDA context was made on, and two points then share one GPU)."""
+
+    def run(self, function: PointFunction, name: str, parameters: dict, root: str, run_id: str) -> dict:
+        return _run_point(function, name, parameters, root, run_id)
+
+
+def _ray_resources(ray, config: ExecutorConfig) -> dict:
+    """What one point's runner asks Ray for: ``cpus_per_point`` cores (:class:`ExecutorConfig`), and one GPU on
+    CUDA. Ray sets a runner's ``OMP_NUM_THREADS`` to its cores."""
+    if config.device != "cuda":
+        return {"num_cpus": config.cpus_per_point or 1.0}
+    cluster = ray.cluster_resources()
+    share = max(1, int(cluster.get("CPU", 1) // max(cluster.get("GPU", 1), 1)))
+    return {"num_gpus": 1, "num_cpus": config.cpus_per_point or share}
+
+
 def _run_ray(todo, function, root, config, run_id, progress, finish) -> None:
+    """The points on a pool of :class:`_PointRunner` actors, as many as the cluster holds at once (one per GPU on
+    CUDA), each handed the next waiting point when it finishes one. A point that raises, or whose runner dies (Ray
+    restarts the runner), goes back to the front of the queue until its retries are spent."""
     ray = require_ray()
     started = _start_ray(ray, config)
+    actors = []
     try:
-        resources = {"num_cpus": config.cpus_per_point}
-        if config.device == "cuda":
-            # max_calls=0: a worker keeps running points. Ray's default for a GPU task is one call per worker, so
-            # every CUDA point paid a new process's imports, CUDA context and kernel loads: on one H200 an 8-point
-            # sweep of 6.4 s points took 127 s under Ray against 65 s in turn here.
-            resources.update(num_gpus=1, max_calls=0)
-        remote = ray.remote(max_retries=config.max_retries, retry_exceptions=True, **resources)(_run_point)
-        pending = {remote.remote(function, name, p, str(root), run_id): name for name, p in todo.items()}
-        while pending:
+        resources = _ray_resources(ray, config)
+        unit = "GPU" if config.device == "cuda" else "CPU"
+        per_runner = resources.get("num_gpus", resources["num_cpus"])
+        slots = max(1, min(len(todo), int(ray.cluster_resources().get(unit, 1) // per_runner)))
+        runner = ray.remote(max_restarts=-1, **resources)(_PointRunner)
+        actors = [runner.remote() for _ in range(slots)] if todo else []
+        queue, idle, pending = list(todo), list(actors), {}
+        tries = dict.fromkeys(todo, 0)
+        while queue or pending:
+            while queue and idle:
+                name, actor = queue.pop(0), idle.pop(0)
+                tries[name] += 1
+                pending[actor.run.remote(function, name, todo[name], str(root), run_id)] = (name, actor)
+            progress.running = len(pending)
             ready, _ = ray.wait(list(pending), num_returns=1, timeout=2.0)
-            progress.running = sum(_attempts(root, name, run_id) > 0 for name in pending.values())
             for ref in ready:
-                name = pending.pop(ref)
+                name, actor = pending.pop(ref)
+                idle.append(actor)
                 try:
                     record = ray.get(ref)
                     progress.done += 1
-                except Exception as error:  # retries spent: recorded, the sweep goes on
+                except Exception as error:  # a raise, or the runner's process died: retried, then recorded
+                    if tries[name] <= config.max_retries:
+                        progress.log(f"{name}: attempt {tries[name]} failed ({_error_text(error)}); retrying")
+                        queue.insert(0, name)
+                        continue
                     record = _failed(name, todo[name], error, _attempts(root, name, run_id))
                     progress.failed += 1
-                progress.running = sum(_attempts(root, n, run_id) > 0 for n in pending.values())
+                progress.running = len(pending)
                 finish(name, record)
                 progress.say(f"{name} {record['status']}")
             if not ready:
@@ -404,3 +440,6 @@ def _run_ray(todo, function, root, config, run_id, progress, finish) -> None:
     finally:
         if started:
             ray.shutdown()
+        else:  # a cluster outlives the run: its runners do not
+            for actor in actors:
+                ray.kill(actor, no_restart=True)

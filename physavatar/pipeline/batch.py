@@ -11,7 +11,7 @@ measured (:func:`point_metrics`). The points are made by
   (:data:`physavatar.body.MOTIONS`) and a fabric (``KAPPA_S:KAPPA_B``, the stiffness multipliers of the truth), the
   synthetic experiment's stages (:data:`STAGES`) with that truth.
 
-Running the points (in this process or as Ray tasks), resuming, retrying and the index files are the executor's
+Running the points (in this process or on Ray actors), resuming, retrying and the index files are the executor's
 (``pienerf.executor``, reached through ``apps.avatar batch``; this package does not import ``pienerf``);
 :func:`plot_batch_summary` draws the index as a table and a chart.
 """

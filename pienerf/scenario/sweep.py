@@ -3,7 +3,7 @@ contact sheet of their key frames.
 
 A point is one call of :func:`pienerf.scenario.render_scenario` on the scenario with the point's values set
 (:func:`pienerf.scenario.apply_sweep_point`); :func:`run_sweep` hands the points to
-:func:`pienerf.executor.run_points` (in this process or as Ray tasks), which writes ``sweep.json`` and ``sweep.csv``
+:func:`pienerf.executor.run_points` (in this process or on Ray actors), which writes ``sweep.json`` and ``sweep.csv``
 (each point's values, status and metrics), then draws ``contact_sheet.png``: the last frame of every point, labelled
 with its name and values, in a grid. The format of the ``[sweep]`` table and the files are described in
 ``docs/sweeps.md``.
