@@ -51,8 +51,9 @@ __all__ = [
     "pack_mlp",
 ]
 
-EXECUTORS = ("warp", "torch")
-"""What runs :class:`FusedMLP`: the fused Warp kernels, or torch's layer-by-layer products."""
+EXECUTORS = ("auto", "warp", "torch")
+"""What runs :class:`FusedMLP`: the fused Warp kernels, torch's layer-by-layer products, or ``"auto"``: the kernels
+for CUDA tensors and torch for CPU ones (measured faster there, ``docs/benchmarks.md``)."""
 
 _ALIGN = 16
 """Widths are padded to multiples of this (a float16 tensor-core fragment's edge)."""
@@ -179,7 +180,7 @@ def _relu_backward(g: wp.float32, a: wp.float32) -> wp.float32:
 def _forward_kernel(rows: int, k: int, d: int, o: int, h: int, dtype, in_dtype, sigmoid: bool):
     """``y [N, n_out] float32 = MLP(x [N, n_in])``, one block per ``rows`` rows."""
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def _fused_mlp_forward(
         x: wp.array2d(dtype=in_dtype),
         w_in: wp.array2d(dtype=dtype),
@@ -214,7 +215,7 @@ def _backward_kernel(rows: int, k: int, d: int, o: int, hidden: int, dtype, in_d
     ``[D, O]`` arrays) and wrt ``x`` (written, float32 ``[N, n_in]``); ``block_count`` blocks walk the rows."""
     hidden_rows = max(hidden - 1, 1) * d
 
-    @wp.kernel(module="unique")
+    @wp.kernel(enable_backward=False, module="unique")
     def _fused_mlp_backward(
         x: wp.array2d(dtype=in_dtype),
         w_in: wp.array2d(dtype=dtype),
@@ -310,7 +311,7 @@ def _check_rows(name: str, t: torch.Tensor, width: int, dtypes: tuple[torch.dtyp
 
 
 def _launch(kernel, blocks: int, args: list, device: torch.device) -> None:
-    arrays = [wp.from_torch(a) if isinstance(a, torch.Tensor) else a for a in args]
+    arrays = [wp.from_torch(a.detach(), requires_grad=False) if isinstance(a, torch.Tensor) else a for a in args]
     wp.launch_tiled(kernel, dim=[blocks], inputs=arrays, block_dim=_BLOCK_DIM, device=backend.warp_device())
 
 
@@ -442,10 +443,12 @@ class FusedMLP(torch.nn.Sequential):
 
     Args:
         layers: the layers, e.g. an existing ``torch.nn.Sequential`` (shared, not copied).
-        executor: ``"warp"`` (the fused kernels) or ``"torch"`` (layer by layer, as ``Sequential``).
+        executor: ``"warp"`` (the fused kernels), ``"torch"`` (layer by layer, as ``Sequential``) or ``"auto"``
+            (:data:`EXECUTORS`). Inputs of a dtype the kernels do not take (float64, for a gradient check) go through
+            torch.
     """
 
-    def __init__(self, layers: torch.nn.Sequential | list[torch.nn.Module], executor: str = "warp"):
+    def __init__(self, layers: torch.nn.Sequential | list[torch.nn.Module], executor: str = "auto"):
         layers = list(layers)
         linear = _linear_layers(layers)
         _check_weights([layer.weight for layer in linear])
@@ -468,8 +471,12 @@ class FusedMLP(torch.nn.Sequential):
             self._packed = (key, pack_mlp([w.detach() for w in weights], self.sigmoid))
         return self._packed[1]
 
+    def runs_kernels(self, device: torch.device) -> bool:
+        """Whether inputs on ``device`` (float16 or float32) go through the fused kernels."""
+        return self.executor == "warp" or (self.executor == "auto" and torch.device(device).type == "cuda")
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``[N, n_in]`` → ``[N, n_out]`` (float32 from the kernels; the input's dtype from torch)."""
-        if self.executor == "torch":
+        if not self.runs_kernels(x.device) or x.dtype not in _WARP_DTYPES:
             return super().forward(x)
         return FusedMLPFunction.apply(x, self.packed(), *self.weights())
