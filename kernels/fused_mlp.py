@@ -28,8 +28,9 @@ float16; they are rounded to the kernel's dtype in the tile.
 :class:`FusedMLP` is a ``torch.nn.Sequential`` of the same ``Linear``/``ReLU``/``Sigmoid`` layers as the field's
 (state-dict keys unchanged), with float32 master weights for the optimiser; its forward runs
 :class:`FusedMLPFunction`, which packs float16 copies of the weights (cached while the parameters' version counters
-stand) and launches the kernels. ``executor="torch"`` runs the layers as ``Sequential`` does, the CPU default: the
-measured speeds are on the measurements page (``docs/benchmarks.md``).
+stand) and launches the kernels. ``executor="torch"`` runs the layers as ``Sequential`` does; ``"auto"``, the
+default, does so on the CPU, where Warp runs its tiles on one thread and torch its products on every core (the
+``mlp_fused`` and ``mlp_fused_train`` bench workloads time both).
 """
 
 import functools
@@ -53,7 +54,7 @@ __all__ = [
 
 EXECUTORS = ("auto", "warp", "torch")
 """What runs :class:`FusedMLP`: the fused Warp kernels, torch's layer-by-layer products, or ``"auto"``: the kernels
-for CUDA tensors and torch for CPU ones (measured faster there, ``docs/benchmarks.md``)."""
+for CUDA tensors and torch for CPU ones (Warp runs CPU tiles on one thread, torch's products on every core)."""
 
 _ALIGN = 16
 """Widths are padded to multiples of this (a float16 tensor-core fragment's edge)."""

@@ -80,7 +80,7 @@ class NGPConfig:
         transmittance_threshold: compositing stops once transmittance falls below it.
         mlp: what evaluates the MLPs: ``"fused"`` (:class:`kernels.fused_mlp.FusedMLP`'s kernels, float16 on CUDA,
             float32 tiles on the CPU), ``"torch"`` (one ``Linear`` after another) or ``"auto"``: the fused kernels on
-            CUDA and torch on the CPU (faster there, ``docs/benchmarks.md``), torch wherever a hidden width is not a
+            CUDA and torch on the CPU (Warp's CPU tiles run on one thread), torch wherever a hidden width is not a
             multiple of 16. The weights and their state-dict keys are the same whichever runs them.
     """
 
