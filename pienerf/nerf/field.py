@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, field
 import torch
 
 from kernels import backend
+from kernels.fused_mlp import FusedMLP
 from kernels.hashgrid import HashGridConfig, HashGridEncoding
 from kernels.reference.hashgrid import hashgrid_forward_torch
 from kernels.volume_render import composite, march_rays
@@ -42,6 +43,7 @@ from pienerf.sim.density import GRADIENT_CHUNK, DensityField
 __all__ = [
     "NGPConfig",
     "InferenceMLP",
+    "MLP_EXECUTORS",
     "NGPField",
     "NerfDensity",
     "OccupancyGrid",
@@ -49,6 +51,10 @@ __all__ = [
     "spherical_harmonics",
     "truncated_exp",
 ]
+
+
+MLP_EXECUTORS = ("auto", "fused", "torch")
+"""Values of :attr:`NGPConfig.mlp`."""
 
 
 @dataclass(frozen=True)
@@ -72,6 +78,10 @@ class NGPConfig:
             0 for object-centred synthetic scenes, ~1/256 for large real ones.
         max_samples: most samples per ray.
         transmittance_threshold: compositing stops once transmittance falls below it.
+        mlp: what evaluates the MLPs: ``"fused"`` (:class:`kernels.fused_mlp.FusedMLP`'s kernels, float16 on CUDA,
+            float32 tiles on the CPU), ``"torch"`` (one ``Linear`` after another) or ``"auto"``: the fused kernels on
+            CUDA and torch on the CPU (Warp's CPU tiles run on one thread), torch wherever a hidden width is not a
+            multiple of 16. The weights and their state-dict keys are the same whichever runs them.
     """
 
     hashgrid: HashGridConfig = field(default_factory=HashGridConfig)
@@ -87,8 +97,16 @@ class NGPConfig:
     cone_angle: float = 0.0
     max_samples: int = 1024
     transmittance_threshold: float = 1e-4
+    mlp: str = "auto"
 
     def __post_init__(self):
+        if self.mlp not in MLP_EXECUTORS:
+            raise ValueError(f"mlp must be one of {MLP_EXECUTORS}, got {self.mlp!r}")
+        if self.mlp == "fused" and (self.density_hidden % 16 or self.color_hidden % 16):
+            raise ValueError(
+                f"mlp='fused' needs hidden widths that are multiples of 16, got density_hidden={self.density_hidden}, "
+                f"color_hidden={self.color_hidden}; pick such widths or mlp='torch'"
+            )
         if not 1 <= self.sh_degree <= 4:
             raise ValueError(f"sh_degree must be 1 to 4 bands, got {self.sh_degree}")
         positive = ("density_hidden", "color_hidden", "color_layers", "grid_resolution", "samples_per_diagonal")
@@ -220,6 +238,11 @@ class NGPField(torch.nn.Module):
             layers += [torch.nn.ReLU(), torch.nn.Linear(c.color_hidden, c.color_hidden, bias=False)]
         layers += [torch.nn.ReLU(), torch.nn.Linear(c.color_hidden, 3, bias=False), torch.nn.Sigmoid()]
         self.color_mlp = torch.nn.Sequential(*layers)
+        fused = c.mlp == "fused" or (c.mlp == "auto" and c.density_hidden % 16 == 0 and c.color_hidden % 16 == 0)
+        if fused:  # the same layers, the same state-dict keys
+            executor = "warp" if c.mlp == "fused" else "auto"
+            self.density_mlp = FusedMLP(self.density_mlp, executor)
+            self.color_mlp = FusedMLP(self.color_mlp, executor)
 
     def mark_weights_changed(self) -> None:
         """Announce that the weights changed in place (an optimiser step, a copy into the parameters): bumps
@@ -293,9 +316,13 @@ class NGPField(torch.nn.Module):
         return sigma, rgb
 
     def half_mlps(self) -> tuple[torch.nn.Module, torch.nn.Module]:
-        """Float16 copies ``(density, colour)`` of the MLPs for :meth:`radiance`, for inference only
+        """Float16 MLPs ``(density, colour)`` for :meth:`radiance`, for inference only: the field's own fused MLPs
+        where they run the float16 kernels (on CUDA; they follow the weights by themselves), else float16 copies
         (:class:`InferenceMLP`; copies: they do not follow later training, see :attr:`weights_version`)."""
-        return tuple(InferenceMLP(mlp, torch.float16) for mlp in (self.density_mlp, self.color_mlp))
+        mlps = (self.density_mlp, self.color_mlp)
+        if all(isinstance(m, FusedMLP) and m.runs_kernels(self.aabb.device) for m in mlps):
+            return mlps
+        return tuple(InferenceMLP(mlp, torch.float16) for mlp in mlps)
 
 
 class InferenceMLP(torch.nn.Module):

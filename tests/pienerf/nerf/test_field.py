@@ -540,3 +540,32 @@ def test_radiance_with_float16_mlp_copies_matches_the_field(device):
     torch.testing.assert_close(rgb.float(), rgb_ref, rtol=0, atol=5e-3)
     torch.testing.assert_close(sigma.float(), sigma_ref, rtol=2e-2, atol=1e-3)
     assert all(p.dtype == torch.float32 and p.requires_grad for p in field.parameters() if p.dim() > 1)
+
+
+def test_fused_mlps_keep_the_keys_and_agree_with_torch(device):
+    """``NGPConfig.mlp``: the fused kernels (float32 tiles on the CPU, float16 on CUDA) hold the same weights under the
+    same keys as torch's layers and give the same σ, colour and gradients, up to float16 rounding on CUDA (a loose
+    1e-2 here: the kernels' own bounds are tests/kernels/test_fused_mlp.py's)."""
+    torch.manual_seed(0)
+    fields = {mlp: NGPField(NGPConfig(mlp=mlp)).to(backend.torch_device()) for mlp in ("torch", "fused")}
+    fields["fused"].load_state_dict(fields["torch"].state_dict())
+    assert list(fields["fused"].state_dict()) == list(fields["torch"].state_dict())
+    generator = torch.Generator().manual_seed(1)
+    x = (torch.rand(200, 3, generator=generator) * 2 - 1).to(backend.torch_device())
+    d = torch.nn.functional.normalize(torch.randn(200, 3, generator=generator), dim=-1).to(x.device)
+    outputs, grads = {}, {}
+    for name, field in fields.items():
+        sigma, rgb = field(x, d)
+        (sigma.sum() * 1e-3 + rgb.sum()).backward()
+        outputs[name] = (sigma.detach(), rgb.detach())
+        grads[name] = {key: p.grad.clone() for key, p in field.named_parameters()}
+    tolerance = 1e-2 if device == "cuda" else 1e-5
+    for a, b in zip(outputs["fused"], outputs["torch"], strict=True):
+        assert torch.allclose(a, b, rtol=tolerance, atol=tolerance)
+    for key, expected in grads["torch"].items():
+        scale = float(expected.abs().max()) + 1e-12
+        assert float((grads["fused"][key] - expected).abs().max()) <= tolerance * scale, key
+    with pytest.raises(ValueError, match="multiples of 16"):
+        NGPConfig(mlp="fused", color_hidden=24)
+    with pytest.raises(ValueError, match="mlp must be one of"):
+        NGPConfig(mlp="cublas")
