@@ -4,6 +4,7 @@
                         [--host 127.0.0.1] [--port 8080] [--viewer meshcat|viser] [--smoke]
                         [--render mesh|particles|nerf] [--nerf-checkpoint PATH] [--cache-dir DIR]
                         [--frame-budget-ms 33.3] [--garment NAME|PATH] [--motion walk|turn|raise|jump|BVH]
+                        [--capture FOLDER]
     python -m apps.demo --build-nerf-asset
 
 ``--build-nerf-asset`` fits the plant's coarse NeRF again with the project's own fitting code and writes the copy
@@ -46,7 +47,19 @@ barrier's reach of the body tinted, the smallest distances to the body and to it
 inside the body (0: the barrier keeps them out). The garment is dragged as the bodies are (a clamped spring on
 the picked vertex, a term of the step's potential) and a clicked vertex can be pinned. ``--garment`` picks it:
 ``procedural``, a shared garment's name (``skirt1252``, ``skirt7271``) or an OBJ/PLY path; by default the full
-``skirt7271`` on CUDA and, on the CPU, a procedural skirt small enough to stay interactive (the page says which).
+``skirt7271`` on CUDA and, on the CPU, a procedural skirt small enough to stay interactive (the page says which,
+and so does the terminal before a page connects).
+
+``--capture FOLDER`` puts the garment on a user's capture (``docs/capture.md``) instead of the mannequin: the body
+sequence of its meshes (read as ``apps.avatar``'s stages read it, no image opened), resampled to 25 frames/s and
+played forward then back so that it loops, wearing the capture's garment, or ``--garment PATH`` (an OBJ/PLY worn by
+the capture's body at its first frame, in its axes). The garment's intersections with the body are resolved as the
+``prepare`` stage resolves them. A folder that is not a capture is refused with what is wrong and how to fix it.
+
+The panel's scene menu switches the scene without a restart, to and from the avatar: the chosen scene is built (with
+progress in the panel) while the current one waits, then shown in its place; an unknown name is refused and a scene
+that fails to build leaves the current one, with the error in the panel. ``--garment``, ``--motion`` and
+``--capture`` dress the avatar whenever it is chosen.
 
 The viewer lives in :mod:`pienerf.viewer`: events become commands queued to the simulation loop, which runs them
 between steps; a command that fails (a malformed message, a bad value) is reported in the panel and the loop goes
@@ -105,8 +118,15 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument(
         "--motion",
-        default="walk",
-        help=f"avatar scene: the motion at start, {', '.join(AVATAR_MOTIONS)} or a .bvh file (retargeted, looped)",
+        default=None,
+        help=f"avatar scene: the motion at start, {', '.join(AVATAR_MOTIONS)} (default walk) or a .bvh file "
+        "(retargeted, looped)",
+    )
+    parser.add_argument(
+        "--capture",
+        default=None,
+        help="avatar scene: a capture folder (docs/capture.md) whose body sequence the garment is simulated on "
+        "(its own garment unless --garment PATH)",
     )
     parser.add_argument("--device", choices=list(backend.DEVICES), default=None)
     parser.add_argument("--host", default="127.0.0.1")
@@ -150,17 +170,17 @@ def main(argv: list[str] | None = None) -> int:
             f"--frame-budget-ms must be a positive number of milliseconds (33.3: 30 frames/s), "
             f"got {args.frame_budget_ms}"
         )
+    if args.capture is not None and args.motion is not None:
+        parser.error("--motion and --capture exclude each other: a capture plays its own body sequence")
+    smoke_garment = args.smoke and args.garment is None and args.capture is None
+    try:
+        config = AvatarConfig(
+            garment="procedural" if smoke_garment else args.garment, motion=args.motion or "walk", capture=args.capture
+        )
+    except ValueError as error:
+        parser.error(str(error))
     backend.init(args.device)
-    avatar = None
-    if args.scene == "avatar":
-        try:
-            config = AvatarConfig(garment="procedural" if args.smoke and args.garment is None else args.garment,
-                                  motion=args.motion)  # fmt: skip
-        except ValueError as error:
-            parser.error(str(error))
-        avatar = lambda progress: AvatarSimulation(config, progress)  # noqa: E731
-    elif args.garment is not None:
-        parser.error("--garment belongs to --scene avatar")
+    avatar = lambda progress: AvatarSimulation(config, progress)  # noqa: E731
     try:
         with _TerminalProgress() as progress:
             app = build_app(
@@ -173,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.nerf_checkpoint,
                 args.cache_dir,
                 progress,
-                avatar,
+                scenes={"avatar": avatar},
             )
     except (ValueError, OSError) as error:  # a bad scene or value, a missing file, a port in use
         print(f"error: {error.strerror if isinstance(error, OSError) and error.strerror else error}", file=sys.stderr)

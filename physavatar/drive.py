@@ -3,7 +3,9 @@
 A step from frame ``t`` to ``t + 1`` moves the body collider from its frame-``t`` to its frame-``t+1`` vertices and
 puts the boundary vertices ``V^b_{t+1}`` on their skinned targets (Appendix A.3.2). :class:`BodyDriver` holds both
 sequences, made once from a motion (:meth:`BodyDriver.from_motion`) or given (a capture's body fit), and hands out
-the :class:`~physavatar.cloth.ClothControl` of each step.
+the :class:`~physavatar.cloth.ClothControl` of each step. :func:`drive_captured_garment` makes a captured garment
+simulable over its capture's body sequence: the preparation stage writes what it returns, the interactive session
+plays it.
 """
 
 from __future__ import annotations
@@ -14,9 +16,15 @@ import torch
 
 from physavatar.body import Body, Motion, attach_to_surface
 from physavatar.cloth import ClothControl
-from physavatar.garment import boundary_targets
+from physavatar.garment import Garment, boundary_targets, select_boundary
+from physavatar.intersections import IntersectionReport, resolve_intersections
 
-__all__ = ["BodyDriver"]
+__all__ = ["GAP_OVER_CONTACT_DISTANCE", "BodyDriver", "CapturedGarment", "drive_captured_garment"]
+
+GAP_OVER_CONTACT_DISTANCE = 2.0
+"""Clearance a captured garment is given from the frame-0 body, in barrier activation distances ``d̂``
+(:func:`drive_captured_garment`): a vertex closer than ``d̂`` would start inside the barrier's support, one at 0
+would make it infinite."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -133,3 +141,57 @@ class BodyDriver:
         return ClothControl(
             self.body_frames[t], self.body_frames[t + 1], self.boundary_index, self.boundary_targets[t + 1]
         )
+
+
+@dataclass(frozen=True, eq=False)
+class CapturedGarment:
+    """A captured garment made simulable over its capture's body sequence (:func:`drive_captured_garment`).
+
+    Attributes:
+        garment: the garment at frame 0, its intersections with the frame-0 body and with itself resolved, m.
+        boundary_chosen: ``"given"`` (the capture's boundary file) or ``"automatic"``.
+        intersections: what the resolution moved and what is left.
+        driver: the body sequence and the boundary vertices carried by their nearest body triangles.
+    """
+
+    garment: Garment
+    boundary_chosen: str
+    intersections: IntersectionReport
+    driver: BodyDriver
+
+
+def drive_captured_garment(
+    body_frames: torch.Tensor,
+    body_faces: torch.Tensor,
+    garment_vertices: torch.Tensor,
+    garment_faces: torch.Tensor,
+    boundary: torch.Tensor | None,
+    fps: float,
+    clearance: float,
+    name: str = "garment",
+) -> CapturedGarment:
+    """Resolve a captured garment's intersections with the frame-0 body and with itself to ``clearance``
+    (:func:`physavatar.intersections.resolve_intersections`), take ``boundary`` or choose the boundary vertices
+    (:func:`physavatar.garment.select_boundary`), and carry them through the body sequence
+    (:meth:`BodyDriver.from_body_frames`).
+
+    Args:
+        body_frames: ``[T, B, 3]`` body vertices per frame, m (a capture's :attr:`~physavatar.capture.
+            CaptureFolder.body_frames`).
+        body_faces: ``[G, 3]`` the body's triangles.
+        garment_vertices: ``[V, 3]`` the garment at frame 0, m.
+        garment_faces: ``[F, 3]`` its triangles.
+        boundary: ``[D]`` the capture's boundary vertices, or ``None`` to choose them.
+        fps: frames per second of the sequence.
+        clearance: the gap left between the garment and the frame-0 body, m (above the barrier's ``d̂``).
+        name: the garment's name.
+    """
+    body0 = body_frames[0]
+    resolved, report = resolve_intersections(garment_vertices, garment_faces, body0, body_faces, clearance)
+    garment = Garment(resolved, garment_faces, name)
+    if boundary is not None:
+        chosen = "given"
+    else:
+        boundary, chosen = select_boundary(garment, (body0, body_faces), mode="auto"), "automatic"
+    driver = BodyDriver.from_body_frames(body_frames, body_faces, resolved, boundary, fps)
+    return CapturedGarment(garment, chosen, report, driver)

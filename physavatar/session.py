@@ -13,6 +13,12 @@ Garment size: on CUDA the DiffCloth skirt ``skirt7271`` of the shared data folde
 the CPU the embedded procedural skirt at :data:`CPU_SKIRT` (6 rings of 16 vertices), which keeps a frame under 0.1 s
 on two cores (figures in ``docs/benchmarks.md``, workload ``viewer_frame_avatar``). :attr:`AvatarSimulation.notes`
 says which was chosen and why.
+
+A user's capture (``docs/capture.md``; :attr:`AvatarConfig.capture`) replaces the mannequin and its motions: the
+capture's body sequence is read by :func:`physavatar.capture.load_capture_folder` (its meshes only, no image) and
+made simulable as the preparation stage makes it (:func:`physavatar.drive.drive_captured_garment`: the garment's
+intersections resolved, the boundary given or chosen and carried by the body); it is resampled to 25 frames/s and
+played forward then back, so that it loops without a jump.
 """
 
 from __future__ import annotations
@@ -28,8 +34,10 @@ import torch
 from kernels import backend
 from kernels.raycast import MeshBVH
 from physavatar.body import Body, Motion, jump, load_bvh, raise_arms, turn, walk
+from physavatar.capture import load_capture_folder
 from physavatar.cloth import ClothConfig, ClothControl, ClothStepReport, SolverCloth
 from physavatar.cloth.picking import GarmentDrag, GarmentPick
+from physavatar.drive import GAP_OVER_CONTACT_DISTANCE, drive_captured_garment
 from physavatar.garment import (
     SHARED_GARMENTS,
     Garment,
@@ -42,6 +50,7 @@ from physavatar.garment import (
 
 __all__ = [
     "AVATAR_MOTIONS",
+    "CAPTURE_MOTION",
     "CPU_SKIRT",
     "FABRIC_PRESETS",
     "AvatarConfig",
@@ -57,6 +66,9 @@ AVATAR_MOTIONS = ("walk", "turn", "raise", "jump")
 """The motions the session plays, each looping: ``walk`` walks in place (the root's forward travel taken out, so it
 loops without a jump) and loops over two gait cycles after its fade-in; ``turn``, ``raise`` and ``jump`` end in the
 pose they start in and loop whole."""
+
+CAPTURE_MOTION = "capture"
+"""The name of a capture's body sequence among the session's motions (its only one)."""
 
 CPU_SKIRT = (6, 16)
 """``(rings, segments)`` of the procedural skirt the session wears on the CPU (96 vertices)."""
@@ -142,7 +154,11 @@ class AvatarConfig:
     """Settings of an :class:`AvatarSimulation`.
 
     Attributes:
-        garment: ``None`` picks by device (``skirt7271`` of the shared data on CUDA where present, else the
+        capture: a user's capture folder (``docs/capture.md``) whose body sequence the garment is simulated on, in
+            place of the mannequin and its motions (``motion`` is then ignored); ``None``: the mannequin.
+        garment: with ``capture``: ``None`` for the capture's garment, or the path of an OBJ/PLY garment worn by
+            the capture's body at its first frame, in the capture's axes and metres. Otherwise ``None`` picks by
+            device (``skirt7271`` of the shared data on CUDA where present, else the
             procedural skirt at :data:`CPU_SKIRT`); ``"procedural"``; a shared garment's name (``"skirt1252"``,
             ``"skirt7271"``, :data:`physavatar.garment.SHARED_GARMENTS`); or the path of an OBJ/PLY garment.
         skirt: ``(rings, segments)`` of the procedural skirt.
@@ -169,6 +185,7 @@ class AvatarConfig:
     """
 
     garment: str | None = None
+    capture: str | None = None
     skirt: tuple[int, int] = CPU_SKIRT
     motion: str = "walk"
     fabric: str = "cotton"
@@ -182,6 +199,16 @@ class AvatarConfig:
 
     def __post_init__(self):
         _check_motion(self.motion)
+        if self.capture is not None:
+            if not Path(self.capture).is_dir():
+                raise ValueError(
+                    f"capture {str(self.capture)[:200]!r} is not a folder; pass a capture folder (docs/capture.md)"
+                )
+            if self.garment is not None and not Path(self.garment).is_file():
+                raise ValueError(
+                    f"with a capture the garment must be an OBJ/PLY file worn by the capture's body at its first "
+                    f"frame, got {self.garment!r}; leave it out to wear the capture's own garment"
+                )
         if self.fabric not in FABRIC_PRESETS:
             raise ValueError(f"unknown fabric {self.fabric!r}; valid: {', '.join(FABRIC_PRESETS)}")
         if self.newton_iterations is not None and not (
@@ -263,6 +290,17 @@ def _bvh_motion(path: Path, body: Body) -> tuple[Motion, int, str]:
     return clip, _BVH_BLEND, note
 
 
+def _resample(frames: torch.Tensor, fps: float) -> torch.Tensor:
+    """``[T, N, 3]`` frames at ``fps`` resampled to the session's 25 frames/s, linearly between two frames: ``[K + 1,
+    N, 3]``, ``K = ⌈(T − 1) · 25 / fps⌉``, the last one the sequence's last frame."""
+    last = frames.shape[0] - 1
+    count = max(1, math.ceil(last * _FPS / fps - 1e-9))
+    at = torch.clamp(torch.arange(count + 1, dtype=torch.float64) * (fps / _FPS), max=float(last))
+    lo = torch.clamp(at.floor().long(), max=max(last - 1, 0))
+    weight = (at - lo).to(frames.dtype)[:, None, None]
+    return torch.lerp(frames[lo], frames[torch.clamp(lo + 1, max=last)], weight)
+
+
 def _ease_weight(t: float) -> float:
     """Smoothstep ``3t² − 2t³``: 0 at 0, 1 at 1, still at both ends."""
     return t * t * (3.0 - 2.0 * t)
@@ -333,40 +371,45 @@ class AvatarSimulation:
     def __init__(self, config: AvatarConfig = AvatarConfig(), progress: Progress | None = None):
         self.config = config
         device = backend.torch_device()
-        self._progress(progress, "building the mannequin", 0.0)
-        self.body = Body.mannequin(spacing=0.03)
-        self.body_faces = self.body.faces.to(torch.int32)
-        self._progress(progress, "placing the garment", 0.3)
-        garment, note = _load_garment(config.garment, self.body, config.skirt, device)
+        self._clips: dict[str, _Clip] = {}
+        if config.capture is not None:
+            self.body = None
+            body_vertices, body_faces, garment, self.boundary = self._captured(config, progress)
+        else:
+            self._progress(progress, "building the mannequin", 0.0)
+            self.body = Body.mannequin(spacing=0.03)
+            body_vertices, body_faces = self.body.vertices, self.body.faces
+            self._progress(progress, "placing the garment", 0.3)
+            garment, note = _load_garment(config.garment, self.body, config.skirt, device)
+            self.notes = (f"wearing {note}", *garment.notes)
+            self.boundary = select_boundary(garment, self.body, mode="auto")
+        self.body_faces = body_faces.to(torch.int32)
         self.garment = garment
-        self.notes = (f"wearing {note}", *garment.notes)
-        self.boundary = select_boundary(garment, self.body, mode="auto")
         self._boundary = self.boundary.long().to(device)
         self.mesh_vertices = garment.vertices.float()
         self.mesh_faces = garment.faces.to(torch.int32)
-        lo, hi = self.body.vertices.amin(0), self.body.vertices.amax(0)
+        lo, hi = body_vertices.amin(0), body_vertices.amax(0)
         self.centre = (0.5 * (lo + hi)).float()
         self.centre[1] = float(garment.vertices[:, 1].mean())
         reach = config.collider_reach
         if reach is None:
             reach = 0.25 if device.type == "cpu" else math.inf
-        near = torch.cdist(self.body.vertices.float(), garment.vertices.float()).min(1).values < reach
-        faces = self.body.faces[near[self.body.faces].any(1)]
+        near = torch.cdist(body_vertices.float(), garment.vertices.float()).min(1).values < reach
+        faces = body_faces[near[body_faces].any(1)]
         self.collider_vertices = torch.unique(faces)  # [C] body vertices the garment's collider keeps
-        remap = torch.full((self.body.vertices.shape[0],), -1, dtype=torch.int64)
+        remap = torch.full((body_vertices.shape[0],), -1, dtype=torch.int64)
         remap[self.collider_vertices] = torch.arange(self.collider_vertices.numel())
         self.collider_faces = remap[faces]
         self._collider_index = self.collider_vertices.to(device)
         if math.isfinite(reach):
             self.notes = (
                 *self.notes,
-                f"the garment collides with the {faces.shape[0]} of the body's {self.body.faces.shape[0]} triangles "
+                f"the garment collides with the {faces.shape[0]} of the body's {body_faces.shape[0]} triangles "
                 f"within {reach:g} m of it",
             )
-        self._clips: dict[str, _Clip] = {}
         self._progress(progress, "skinning the motion", 0.5)
-        self.motion = config.motion
-        self._clip_of(config.motion)
+        self.motion = CAPTURE_MOTION if config.capture is not None else config.motion
+        self._clip_of(self.motion)
         self.solver_device = device
         self.newton_iterations = config.newton_iterations or _INTERACTIVE_NEWTON_ITERATIONS
         self.fabric_name = config.fabric
@@ -398,7 +441,48 @@ class AvatarSimulation:
         if progress is not None:
             progress(stage, fraction)
 
+    def _captured(self, config: AvatarConfig, progress: Progress | None):
+        """The capture's body ``[B, 3]`` at frame 0 and faces ``[G, 3]``, the garment and its boundary ``[D]``;
+        the body sequence's clip waits in :attr:`_capture_clip` for :meth:`_clip_of`."""
+        self._progress(progress, f"reading the capture {Path(config.capture).name}", 0.0)
+        try:
+            folder = load_capture_folder(config.capture, views=False)
+        except (FileNotFoundError, ValueError) as error:
+            raise ValueError(
+                f"{config.capture} is not a capture this viewer can play: {error} (the format: docs/capture.md; "
+                f"python -m apps.avatar check {config.capture} lists every problem)"
+            ) from None
+        garment_vertices, garment_faces, boundary = folder.garment_vertices, folder.garment_faces, folder.boundary
+        name, worn = folder.path.name, f"the capture's garment ({garment_vertices.shape[0]} vertices)"
+        if config.garment is not None:
+            given = load_garment(config.garment, scale=None)
+            garment_vertices, garment_faces, boundary = folder.from_capture_axes(given.vertices), given.faces, None
+            name, worn = Path(config.garment).stem, f"{Path(config.garment).name} ({given.vertices.shape[0]} vertices)"
+        self._progress(progress, "resolving the garment's intersections", 0.3)
+        gap = GAP_OVER_CONTACT_DISTANCE * ClothConfig().contact_distance
+        captured = drive_captured_garment(
+            folder.body_frames, folder.body_faces, garment_vertices, garment_faces, boundary, folder.fps, gap, name
+        )
+        driver = captured.driver
+        frames = _resample(driver.body_frames, folder.fps)
+        targets = _resample(driver.boundary_targets, folder.fps)
+        # forward then back: the last frame is the first's pose, so the loop goes on from frame 0 without a jump
+        self._capture_clip = tuple(torch.cat([a, a.flip(0)[1:]]) for a in (frames, targets))
+        self.notes = (
+            f"wearing {worn} on the body of the capture {folder.path.name}: {driver.frames} frames at "
+            f"{folder.fps:g} fps, played at 25 fps forward then back",
+            f"{captured.intersections.summary()}; {driver.boundary_index.numel()} boundary vertices "
+            f"({captured.boundary_chosen})",
+        )
+        return folder.body_frames[0], folder.body_faces, captured.garment, driver.boundary_index
+
     def _clip_of(self, name: str) -> _Clip:
+        if name not in self._clips and self.body is None:
+            if name != CAPTURE_MOTION:
+                raise ValueError(f"unknown motion {str(name)[:80]!r}; a capture plays its own: {CAPTURE_MOTION}")
+            device = backend.torch_device()
+            body, targets = (a.to(device, F64) for a in self._capture_clip)
+            self._clips[name] = _Clip(body, body[:, self.collider_vertices.to(device)].contiguous(), targets, 0)
         if name not in self._clips:
             if name in AVATAR_MOTIONS:
                 motion, loop_start = _motion(name, self.body)
@@ -438,7 +522,10 @@ class AvatarSimulation:
 
     @property
     def motions(self) -> tuple[str, ...]:
-        """The motions :meth:`set_motion` takes: :data:`AVATAR_MOTIONS` and the BVH files played so far."""
+        """The motions :meth:`set_motion` takes: :data:`AVATAR_MOTIONS` and the BVH files played so far, or a
+        capture's body sequence alone (:data:`CAPTURE_MOTION`)."""
+        if self.body is None:
+            return (CAPTURE_MOTION,)
         return (*AVATAR_MOTIONS, *(name for name in self._clips if name not in AVATAR_MOTIONS))
 
     @property
@@ -580,7 +667,11 @@ class AvatarSimulation:
     def set_motion(self, name: str) -> None:
         """Play motion ``name`` (:data:`AVATAR_MOTIONS`) from its first frame: the body and the garment start again
         from rest (the first pose of every motion is the rest pose), pins and drag cleared."""
-        _check_motion(name)
+        if self.body is None:
+            if name != CAPTURE_MOTION:
+                raise ValueError(f"unknown motion {str(name)[:80]!r}; a capture plays its own: {CAPTURE_MOTION}")
+        else:
+            _check_motion(name)
         self.motion = name
         self._clip_of(name)
         self.reset()
@@ -664,6 +755,11 @@ class AvatarSimulation:
         """``[B, 3]`` float32 mannequin vertices now (m), on the CPU."""
         return self.body_now.to("cpu", torch.float32)
 
+    def near_body(self) -> torch.Tensor:
+        """``[V]`` bool, on the CPU: the garment vertices within the barrier's reach ``d̂`` of the body now (the
+        tinted ones of :meth:`vertex_colors`)."""
+        return self._near.clone()
+
     def vertex_colors(self) -> torch.Tensor:
         """``[V, 3]`` the garment's colours: :data:`CONTACT_RGB` within ``d̂`` of the body, else :data:`GARMENT_RGB`."""
         near = self._near[:, None]
@@ -689,7 +785,8 @@ class AvatarSimulation:
             "scene": "avatar",
             "garment": self.garment.name,
             "garment_vertices": int(self.garment.vertices.shape[0]),
-            "body_vertices": int(self.body.vertices.shape[0]),
+            "body_vertices": int(self.body_now.shape[0]),
+            "capture": self.config.capture,
             "boundary_vertices": int(self.boundary.numel()),
             "motion": self.motion,
             "fabric": {"name": self.fabric_name, **asdict(self.fabric)},

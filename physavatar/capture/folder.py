@@ -69,7 +69,7 @@ class CaptureFolder:
     Attributes:
         path: the capture folder.
         film: the video: images ``[T, C, H, W, 3]`` float32, garment masks ``[T, C, H, W]`` bool, the cameras (y-up
-            world), fps; ``lighting`` is ``None`` (unknown).
+            world), fps; ``lighting`` is ``None`` (unknown). ``None`` when loaded without views.
         body_frames: ``[T, B, 3]`` float64 body vertices per time index, m.
         body_faces: ``[G, 3]`` int64 body triangles (one topology for every frame).
         garment_vertices: ``[V, 3]`` float64 garment at time index 0, m (welded).
@@ -77,11 +77,13 @@ class CaptureFolder:
         boundary: ``[D]`` int64 sorted indices into ``garment_vertices`` of the vertices that follow the body (the
             file's indices remapped through the weld), or ``None`` where the capture gives none.
         up: the capture's declared up axis, ``"y"`` or ``"z"``.
-        body_masks: ``[T, C, H, W]`` bool body masks, or ``None`` where the capture gives none.
+        body_masks: ``[T, C, H, W]`` bool body masks, or ``None`` where the capture gives none (or it was loaded
+            without views).
+        fps: frames per second of the video and the body sequence.
     """
 
     path: Path
-    film: Capture
+    film: Capture | None
     body_frames: torch.Tensor
     body_faces: torch.Tensor
     garment_vertices: torch.Tensor
@@ -89,6 +91,7 @@ class CaptureFolder:
     boundary: torch.Tensor | None
     up: str
     body_masks: torch.Tensor | None
+    fps: float
 
     def to_capture_axes(self, points: torch.Tensor) -> torch.Tensor:
         """``[..., 3]`` points (or directions) in the project's y-up axes turned into the capture's declared axes."""
@@ -99,7 +102,9 @@ class CaptureFolder:
         return from_capture_axes(points, self.up)
 
 
-def load_capture_folder(path: str | Path, progress: Callable[[int, int], None] | None = None) -> CaptureFolder:
+def load_capture_folder(
+    path: str | Path, progress: Callable[[int, int], None] | None = None, views: bool = True
+) -> CaptureFolder:
     """Read a capture folder into the project's y-up axes.
 
     ``transforms.json`` and the meshes are read and checked before any image is: a broken folder fails fast.
@@ -109,6 +114,8 @@ def load_capture_folder(path: str | Path, progress: Callable[[int, int], None] |
     Args:
         path: the capture folder (or its ``transforms.json``).
         progress: called as ``progress(done, total)`` after each of the ``T·C`` views (image and masks) is read.
+        views: read the images and masks; without them (a program that plays the body sequence) ``film`` and
+            ``body_masks`` are ``None`` and no image is opened.
 
     Returns:
         The :class:`CaptureFolder`.
@@ -126,7 +133,7 @@ def load_capture_folder(path: str | Path, progress: Callable[[int, int], None] |
     garment = read_garment(folder, garment_path(folder, index.meta, findings), findings)
     boundary_file = boundary_path(folder, index.meta, findings)
     boundary = None if boundary_file is None else read_boundary(folder, boundary_file, garment, findings)
-    images, masks, body_masks = read_views(index, findings, progress)
+    images, masks, body_masks = read_views(index, findings, progress) if views else (None, None, None)
 
     rig, garment_vertices = index.rig, garment.vertices
     if index.up == "z":
@@ -135,7 +142,7 @@ def load_capture_folder(path: str | Path, progress: Callable[[int, int], None] |
         rig = CameraRig(turn @ rig.c2w, rig.width, rig.height, rig.fx, rig.fy, rig.cx, rig.cy)
         body = body @ turn[:3, :3].T
         garment_vertices = garment_vertices @ turn[:3, :3].T
-    film = Capture(images, masks, rig, index.fps, None)
+    film = Capture(images, masks, rig, index.fps, None) if views else None
     return CaptureFolder(
-        folder, film, body, body_faces, garment_vertices, garment.faces, boundary, index.up, body_masks
+        folder, film, body, body_faces, garment_vertices, garment.faces, boundary, index.up, body_masks, index.fps
     )

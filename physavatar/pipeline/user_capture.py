@@ -37,10 +37,8 @@ from kernels.image_metrics import ssim
 from kernels.raycast import MeshBVH
 from physavatar.body import attach_to_surface
 from physavatar.capture import Lighting, check_capture, load_capture_folder, render_capture, to_capture_axes
-from physavatar.drive import BodyDriver
+from physavatar.drive import GAP_OVER_CONTACT_DISTANCE, drive_captured_garment
 from physavatar.fit.estimation import EstimationProblem, FabricParameters, rollout
-from physavatar.garment import Garment, select_boundary
-from physavatar.intersections import resolve_intersections
 from physavatar.pipeline.report import SMOKE_NOTE, write_strip
 from physavatar.pipeline.stages import (
     BODY_COLOR,
@@ -82,10 +80,6 @@ CAPTURE_OUTPUTS: dict[str, tuple[str, ...]] = {
 }
 """What each stage writes under the experiment folder on a user's capture (``animate/`` also holds one OBJ per
 frame)."""
-
-GAP_OVER_CONTACT_DISTANCE = 2.0
-"""Clearance the preparation leaves between the garment and the frame-0 body, in barrier activation distances
-``d̂``: a vertex closer than ``d̂`` would start inside the barrier's support, one at 0 would make it infinite."""
 
 
 def prepare(
@@ -134,18 +128,20 @@ def prepare(
             "least one to fit; hold out fewer cameras"
         )
     gap = GAP_OVER_CONTACT_DISTANCE * config.fabric.contact_distance
-    body0 = folder.body_frames[0]
-    resolved, report = resolve_intersections(
-        folder.garment_vertices, folder.garment_faces, body0, folder.body_faces, gap
+    captured = drive_captured_garment(
+        folder.body_frames,
+        folder.body_faces,
+        folder.garment_vertices,
+        folder.garment_faces,
+        folder.boundary,
+        folder.fps,
+        gap,
+        folder.path.name,
     )
+    report, driver, chosen = captured.intersections, captured.driver, captured.boundary_chosen
+    resolved, boundary = captured.garment.vertices, driver.boundary_index
     say(progress, "prepare", report.summary())
-    garment = Garment(resolved, folder.garment_faces, folder.path.name)
-    if folder.boundary is not None:
-        boundary, chosen = folder.boundary, "given"
-    else:
-        boundary, chosen = select_boundary(garment, (body0, folder.body_faces), mode="auto"), "automatic"
     say(progress, "prepare", f"{boundary.numel()} boundary vertices ({chosen})")
-    driver = BodyDriver.from_body_frames(folder.body_frames, folder.body_faces, resolved, boundary, folder.film.fps)
     folder_out.mkdir(parents=True, exist_ok=True)
     write_arrays(
         folder_out / "inputs.npz",

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 
+from pienerf.scenes import SCENES
 from pienerf.session import Simulation, SimulationConfig
 from pienerf.viewer.loop import (
     CONTROL_RANGES,
@@ -138,12 +139,15 @@ def build_app(
     cache_dir: str | None = None,
     progress=None,
     simulation=None,
+    scenes: dict | None = None,
 ) -> DemoApp:
-    """The simulation of ``scene`` behind the chosen viewer, showing ``render`` (:data:`RENDER_MODES`).
+    """The simulation of ``scene`` behind the chosen viewer, showing ``render`` (:data:`RENDER_MODES`), with a
+    scene menu that switches to any embedded scene (:data:`pienerf.scenes.SCENES`) or one of ``scenes``.
 
-    ``simulation``, when given, builds the simulation instead, called as ``simulation(progress)``: a scene of
-    another package behind the same verbs, such as the dressed avatar (:class:`physavatar.session.AvatarSimulation`,
-    which this package may not import; ``apps.demo`` passes it); ``scene`` then only names it.
+    ``scenes`` maps the names of scenes of other packages to their builders, called as ``builder(progress)``: the
+    dressed avatar (:class:`physavatar.session.AvatarSimulation`, which this package may not import; ``apps.demo``
+    passes it) behind the same verbs. ``simulation``, when given, builds ``scene`` that way (the same as
+    ``scenes={scene: simulation}``). A ``scene`` that is a mesh or checkpoint path joins the menu too.
 
     With ``render="nerf"`` the NeRF is loaded from ``nerf_checkpoint`` or fitted to the scene (a few-second fit
     with ``smoke``) before the viewer starts; ``progress(stage, fraction)`` follows the set-up. A bad ``host`` or
@@ -154,19 +158,30 @@ def build_app(
         raise ValueError(f"unknown viewer {viewer_name!r}; valid: {', '.join(VIEWERS)}")
     if render not in RENDER_MODES:
         raise ValueError(f"unknown render mode {render!r}; valid: {', '.join(RENDER_MODES)}")
+    others = dict(scenes or {})
+    if simulation is not None:
+        others[scene] = simulation
+    names = tuple(dict.fromkeys((*SCENES, *others, scene)))
+
+    def build_scene(name: str, progress=None):
+        if name in others:
+            return others[name](progress)
+        return Simulation(SimulationConfig.create(name, **(SMOKE if smoke else {})), progress)
+
     # The viewer first: a port in use is reported before the simulation is built. The front end's module loads
     # here (meshcat with tornado, or viser), only when that front end is built.
     viewer = __getattr__("ViserViewer" if viewer_name == "viser" else "MeshcatViewer")(host, port)
+    menu = {"scene": scene, "scenes": names, "build_scene": build_scene}
+    nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
     try:
-        if simulation is not None:
+        if scene in others:
             if render != "mesh":
                 raise ValueError(f"the {scene} scene shows its mesh only, got --render {render}")
-            return DemoApp(simulation(progress), viewer, render)
-        simulation = Simulation(SimulationConfig.create(scene, **(SMOKE if smoke else {})), progress)
-        nerf_options = {"checkpoint": nerf_checkpoint, "fit": smoke_fit() if smoke else None, "cache_dir": cache_dir}
+            return DemoApp(others[scene](progress), viewer, render, nerf_options, **menu)
+        simulation = build_scene(scene, progress)
         if render == "nerf":
             load_nerf(simulation, progress=progress, **nerf_options)
-        return DemoApp(simulation, viewer, render, nerf_options)
+        return DemoApp(simulation, viewer, render, nerf_options, **menu)
     except BaseException:
         viewer.close()
         raise

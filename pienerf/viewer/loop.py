@@ -237,6 +237,9 @@ class Viewer(Protocol):
     def show_progress(self, stage: str, fraction: float | None) -> None:
         """Show the progress of slow work (``fraction`` in [0, 1]), or hide it (``None``)."""
 
+    def detach(self) -> None:
+        """Take the scene and its controls off the page (a scene switch attaches the next one)."""
+
     def has_clients(self) -> bool:
         """Whether any page is connected (with none the loop sleeps until one connects)."""
 
@@ -252,12 +255,30 @@ class DemoApp:
         render_mode: one of :data:`RENDER_MODES`, shown first.
         nerf_options: keyword arguments of :func:`load_nerf` (``checkpoint``, ``fit``, ``cache_dir``) used when the
             NeRF mode is switched on later.
+        scene: the name of the scene shown (the scene menu shows it).
+        scenes: the names the scene menu offers, ``scene`` among them; empty: no menu.
+        build_scene: ``build_scene(name, progress)``, the simulation of a scene of ``scenes``
+            (:meth:`switch_scene`); ``progress(stage, fraction)`` follows the build.
     """
 
-    def __init__(self, simulation, viewer: Viewer, render_mode: str = "mesh", nerf_options: dict | None = None):
+    def __init__(
+        self,
+        simulation,
+        viewer: Viewer,
+        render_mode: str = "mesh",
+        nerf_options: dict | None = None,
+        scene: str | None = None,
+        scenes: tuple[str, ...] = (),
+        build_scene: Callable[[str, Callable[[str, float], None]], object] | None = None,
+    ):
         if render_mode not in RENDER_MODES:
             raise ValueError(f"unknown render mode {render_mode!r}; valid: {', '.join(RENDER_MODES)}")
+        if scenes and (scene not in scenes or build_scene is None):
+            raise ValueError(f"a scene menu needs the scene shown ({scene!r}) among {list(scenes)} and a builder")
         self.simulation = simulation
+        self.scene = scene if scene is not None else getattr(simulation.config, "scene", "")
+        self.scenes = tuple(scenes)
+        self._build_scene = build_scene
         self.viewer = viewer
         self.render_mode = render_mode
         self.nerf_options = dict(nerf_options or {})
@@ -381,6 +402,53 @@ class DemoApp:
         if job.error is not None:
             self.errors.append(f"NeRF fit failed: {job.error}")
             self.viewer.report(self.errors[-1])
+
+    def check_scene(self, name) -> str:
+        """``name`` when the scene menu offers it, else a ValueError naming the scenes it offers."""
+        if not self.scenes:
+            raise ValueError("this viewer has no scene menu; start it with --scene NAME")
+        if not isinstance(name, str) or name not in self.scenes:
+            raise ValueError(f"unknown scene {str(name)[:40]!r}; valid: {', '.join(self.scenes)}")
+        return name
+
+    def choose_scene(self, name) -> None:
+        """Queue the switch to scene ``name`` (checked here, on the caller's thread: a bad name raises ValueError
+        and queues nothing); a later choice waiting with it replaces it."""
+        name = self.check_scene(name)
+        self.submit(f"scene {name}", lambda: self.switch_scene(name), key="scene", heavy=True)
+
+    def switch_scene(self, name: str) -> None:
+        """Build scene ``name`` (progress in the viewer) and show it in place of the current one, in the loop thread.
+
+        The build happens before anything is taken down: a build that fails raises ValueError with its error and
+        the current scene stays, its state untouched. A NeRF fit in progress is stopped; the new scene shows its
+        mesh, and a ``checkpoint`` of :attr:`nerf_options` (trained on the first scene) is forgotten.
+        """
+        name = self.check_scene(name)
+        self.viewer.report(f"building the {name} scene (the {self.scene} scene waits until it is ready)")
+        progress = lambda stage, fraction: self.viewer.show_progress(f"{name}: {stage}", fraction)  # noqa: E731
+        progress("starting", 0.0)
+        try:
+            simulation = self._build_scene(name, progress)
+        except Exception as error:
+            self.viewer.show_progress("", None)
+            raise ValueError(f"the {name} scene could not be built ({error}); still showing {self.scene}") from error
+        if self.nerf_job is not None:
+            self.nerf_job.cancel()
+            self.nerf_job = None
+        self._refinement_started, self._nerf_shown = False, 0
+        shown = (self.simulation, self.scene, self.render_mode, self.paused)
+        self.viewer.detach()
+        self.simulation, self.scene, self.render_mode, self.paused = simulation, name, "mesh", False
+        try:
+            self.viewer.attach(self)
+        except Exception:  # the page cannot show it: back to the scene it showed
+            self.viewer.detach()
+            self.simulation, self.scene, self.render_mode, self.paused = shown
+            self.viewer.attach(self)
+            raise
+        self.nerf_options.pop("checkpoint", None)
+        self.still_frames = 0
 
     def close(self) -> None:
         """Stop a fit in progress and close the viewer."""

@@ -311,6 +311,10 @@ class MeshcatServer:
         """Stop replaying ``key`` to tabs that open later."""
         self._loop.add_callback(self._scene.pop, key, None)
 
+    def forget_all(self) -> None:
+        """Stop replaying anything sent so far to tabs that open later (a new scene is sent whole after it)."""
+        self._loop.add_callback(self._scene.clear)
+
     @property
     def clients(self) -> list[int]:
         """Numbers of the open tabs."""

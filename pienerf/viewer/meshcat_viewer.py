@@ -23,11 +23,16 @@ Page messages (JSON objects; anything else is dropped and counted by :class:`Mes
   scene axes, OpenGL camera axes), vertical field of view (degrees), width over height. The NeRF mode renders
   from it.
 - ``{"type": "play" | "pause"}``: play or hold a garment scene's motion; in a body scene, run or pause the loop.
+- ``{"type": "scene", "name"}``: the scene menu; builds that scene (progress in the page) and shows it in place of
+  the current one, which stays when the build fails (:meth:`pienerf.viewer.loop.DemoApp.switch_scene`).
 
 A garment scene (a simulation whose ``kind`` is ``"garment"``: the dressed avatar, :class:`physavatar.session.
 AvatarSimulation`) shows the garment as the pickable body, the mannequin beside it, and the garment panel; its
 ``set`` names are :data:`GARMENT_CONTROLS`, ``motion`` and ``preset``. Garment vertices within the barrier's reach of
 the body are tinted (the script's ``set_colors``, sent when the tint changes).
+
+A scene switch deletes the root node in every tab, forgets what the server replays to tabs that open later
+(:meth:`pienerf.viewer.meshcat_server.MeshcatServer.forget_all`) and builds the next scene as at the start.
 """
 
 from __future__ import annotations
@@ -42,7 +47,7 @@ import meshcat.geometry as g
 import numpy as np
 import torch
 import umsgpack
-from meshcat.commands import SetObject, SetProperty, SetTransform
+from meshcat.commands import Delete, SetObject, SetProperty, SetTransform
 from meshcat.path import Path
 from PIL import Image
 
@@ -72,7 +77,7 @@ _TARGET = Path((*_ROOT, "drag_target"))
 _AVATAR = Path((*_ROOT, "avatar"))
 _CONTROLS = tuple(name for name in CONTROL_RANGES if name != "kernel_count")
 _BUTTONS = ("release", "pin", "push", "cut", "reset", "play", "pause")
-_TYPES = ("pick", "drag", "camera", "set", "resample", *_BUTTONS)
+_TYPES = ("pick", "drag", "camera", "set", "resample", "scene", *_BUTTONS)
 
 GARMENT_CONTROLS = {
     "fabric_density": ("density", (200.0, 640.0)),
@@ -157,6 +162,7 @@ class MeshcatViewer:
         self._particle_count = -1
         self._target_shown = False
         self._body = None  # (model, particle count) last shown
+        self._tint = None  # [V, 3] the garment's colours last sent
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
         self.message = ""  # the last one shown
@@ -222,9 +228,22 @@ class MeshcatViewer:
                 "kernel_count": sim.model.basis.kernel_count,
                 "render_mode": app.render_mode,
                 "render_modes": list(RENDER_MODES),
+                **self._scene_menu(),
             },
             key="controls",
         )
+
+    def _scene_menu(self) -> dict:
+        """The scene menu's part of the controls message: the scene shown and those offered."""
+        return {"scene": self.app.scene, "scenes": list(self.app.scenes)}
+
+    def detach(self) -> None:
+        """Take the scene off every tab (the root node and everything under it) and stop replaying it to tabs that
+        open later; the drag, the tint and the shown body are forgotten."""
+        self.server.send(Delete(Path(_ROOT)).lower())
+        self.server.forget_all()
+        self._particle_count, self._target_shown, self._body, self._tint, self._dragger = -1, False, None, None, None
+        self.nerf_schedules.drop()
 
     def _show(self, mode: str) -> None:
         """Scene nodes of a render mode: the browser's mesh or particles, or the server's NeRF image."""
@@ -259,6 +278,9 @@ class MeshcatViewer:
         app = self.app
         if app is None:
             raise ValueError(f"{kind} refused: the simulation is still being built; the page shows it when ready")
+        if kind == "scene":
+            self._checked(app.choose_scene, message.get("name"))
+            return
         sim = app.simulation
         if _is_garment(sim) and kind in _GARMENT_ONLY:
             raise ValueError(f"{kind} refused: a garment has no {kind}; drag, pin, release or reset it")
@@ -449,12 +471,15 @@ class MeshcatViewer:
         material = g.MeshLambertMaterial(vertexColors=True, side=2)  # both sides: the skirt's inside shows
         send(SetObject(garment, material, _BODY).lower(), key="body")
         self._tint = sim.vertex_colors().numpy()
-        body = g.TriangularMeshGeometry(sim.body_vertices().numpy(), sim.body.faces.numpy())
+        body = g.TriangularMeshGeometry(sim.body_vertices().numpy(), sim.body_faces.numpy())
         send(SetObject(body, g.MeshLambertMaterial(color=0xC7BDAD), _AVATAR).lower(), key="avatar")
         self._send_drag_marker(0.012, 0x3050E0)
         centre = sim.centre.double().numpy()
         self._send_camera(centre, centre + np.array([0.0, 0.15, 1.6]))
+        send(SetProperty("visible", True, Path(("Grid",))).lower(), key="grid visible")
+        send(SetProperty("visible", True, Path(("Background",))).lower(), key="background visible")
         self.server.send_json({"type": "mode", "mode": "mesh"}, key="mode")
+        self.nerf_schedules.drop()
         self._send_controls()
         self.report("; ".join(sim.notes) + ". Drag the skirt with the mouse; click it to pick a vertex to pin")
 
@@ -478,6 +503,7 @@ class MeshcatViewer:
                 "frames": sim.frame_count - 1,
                 "render_mode": "mesh",
                 "render_modes": ["mesh"],
+                **self._scene_menu(),
             },
             key="controls",
         )

@@ -9,6 +9,12 @@ and the gizmo at the target moves it in 3-D. In the ``"nerf"`` render mode each 
 rendered from its own camera as the page's background image with its depth, while things move as coarse as the
 frame budget asks, refined once still (:class:`pienerf.render.RefinementSchedule`).
 
+A "scene" menu at the top of the panel switches the scene (:meth:`pienerf.viewer.loop.DemoApp.switch_scene`): the
+chosen scene is built (progress in the panel), then the scene and the panel are emptied and built again for it; a
+build that fails leaves the current scene, with the error in the panel. In a garment scene (the dressed avatar) the
+garment's faces that have a vertex within the barrier's reach of the body show in the contact colour, the rest in
+the garment's, and the panel counts the contact.
+
 Every event becomes a command of the :class:`pienerf.viewer.loop.DemoApp`; this module holds no simulation logic.
 Every value from the page is range-checked as it arrives (:func:`pienerf.viewer.loop.control_value`); a bad one is
 refused with a message at the top of the panel and the control goes back to the value in use. Switching to the NeRF
@@ -131,13 +137,20 @@ class ViserViewer:
         self.nerf_renders: list[int] = []  # downscale of every NeRF image sent, in order
         self.last_nerf_image: np.ndarray | None = None  # [H, W, 3] uint8, the latest one
         self._garment = False  # a garment scene (the dressed avatar) is shown
+        self._events = False  # the scene's click and the clients' connect are handled (once, across scenes)
+        self._near: np.ndarray | None = None  # [V] bool, the garment vertices tinted last
 
     # -- construction ----------------------------------------------------------------------------
 
     def attach(self, app: DemoApp) -> None:
+        """Build the scene and the panel of ``app``'s simulation (again after :meth:`detach`)."""
         self.app = app
         server, sim = self.server, app.simulation
         server.scene.set_up_direction("+y")
+        if not self._events:
+            self._events = True
+            server.scene.on_click()(self.on_click)
+            server.on_client_connect(self._on_connect)
         if getattr(sim, "kind", "body") == "garment":
             self._attach_garment(app)
             return
@@ -165,9 +178,7 @@ class ViserViewer:
         )
         self.ground = server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
         self._build_gui(app)
-        server.scene.on_click()(self.on_click)
         self.mesh.on_drag("left")(self._on_drag)
-        server.on_client_connect(self._on_connect)
         self._show(app.render_mode)
 
     def _build_gui(self, app: DemoApp) -> None:
@@ -177,6 +188,8 @@ class ViserViewer:
         self.stats = gui.add_markdown("starting")
         self.message = gui.add_markdown("click the body to pick, click again to drag")
         self.breakdown = gui.add_markdown("")
+        self._accepted = {}
+        self._add_scene_menu(app)
         with gui.add_folder("Material"):
             lo, hi = CONTROL_RANGES["young_modulus"]
             self.young = gui.add_number("Young's modulus (Pa)", material.young_modulus, min=lo, max=hi, step=1.0)
@@ -200,7 +213,7 @@ class ViserViewer:
             self.show_mesh = gui.add_checkbox("mesh", True)
             self.show_particles = gui.add_checkbox("particles", False)
             self.show_ips = gui.add_checkbox("kernels and integrator points", False)
-        self._accepted = {id(handle): handle.value for handle in self._material_handles}
+        self._accepted.update({id(handle): handle.value for handle in self._material_handles})
         for handle in self._material_handles:
             handle.on_update(self._refusing(handle, self._material_changed))
         self.resample.on_click(self._refusing(None, self._resample_clicked))
@@ -214,6 +227,24 @@ class ViserViewer:
         self.show_ips.on_update(lambda _e: setattr(self.ips, "visible", self.show_ips.value))
         self._accepted[id(self.render_mode)] = self.render_mode.value
         self.render_mode.on_update(self._refusing(self.render_mode, self._render_mode_chosen))
+
+    def _add_scene_menu(self, app: DemoApp) -> None:
+        """The scene menu (when ``app`` offers scenes): a choice is checked and queued, a bad one refused."""
+        self.scene_menu = None
+        if not app.scenes:
+            return
+        self.scene_menu = self.server.gui.add_dropdown("scene", app.scenes, initial_value=app.scene)
+        self._accepted[id(self.scene_menu)] = app.scene
+        self.scene_menu.on_update(self._refusing(self.scene_menu, app.choose_scene))
+
+    def detach(self) -> None:
+        """Empty the scene and the panel (a scene switch builds them again for the next scene)."""
+        self._remove_gizmo()
+        self.server.scene.set_background_image(None)
+        self.server.scene.reset()
+        self.server.gui.reset()
+        self._garment, self._near = False, None
+        self.nerf_schedules.drop()
 
     def _set_quietly(self, handle, value) -> None:
         """Show ``value`` in ``handle`` (and accept it) without running its callback."""
@@ -280,21 +311,31 @@ class ViserViewer:
 
     def _attach_garment(self, app: DemoApp) -> None:
         """The garment (dragged like a body), the mannequin and the garment panel: motion, playback, fabric.
-        viser's simple mesh takes one colour, so the contact shows as counts in the panel, not as a tint."""
+
+        viser's simple mesh takes one colour, and its vertex-coloured path (a GLB) is re-sent whole on every change,
+        so the garment is two simple meshes over the same vertex buffer: its faces with no vertex near the body in
+        the garment's colour, and those with one (:meth:`_tint`) in the contact colour; the faces move between them
+        when the contact changes, the vertices go to both every frame."""
         self._garment = True
         server, sim, gui = self.server, app.simulation, self.server.gui
-        self.mesh = server.scene.add_mesh_simple(
-            "/body", sim.deformed_mesh_vertices().numpy(), sim.mesh_faces.numpy().astype(np.uint32),
-            color=(204, 56, 51), side="double",
-        )  # fmt: skip
+        vertices, faces = sim.deformed_mesh_vertices().numpy(), sim.mesh_faces.numpy().astype(np.uint32)
+        colors = (sim.vertex_colors().numpy() * 255).round().astype(np.uint8)
+        near = sim.near_body().numpy()
+        self._garment_faces = faces
+        self.mesh = server.scene.add_mesh_simple("/body", vertices, faces, color=(204, 56, 51), side="double")
+        self.tinted = server.scene.add_mesh_simple("/body_contact", vertices, faces[:1], color=(255, 217, 26),
+                                                   side="double", visible=False)  # fmt: skip
+        self._tint(near, colors)
         self.avatar = server.scene.add_mesh_simple(
-            "/avatar", sim.body_vertices().numpy(), sim.body.faces.numpy().astype(np.uint32), color=(199, 189, 173)
+            "/avatar", sim.body_vertices().numpy(), sim.body_faces.numpy().astype(np.uint32), color=(199, 189, 173)
         )
         self.ground = server.scene.add_grid("/ground", width=4.0, height=4.0, plane="xz", position=(0.0, 0.0, 0.0))
         self.stats = gui.add_markdown("starting")
         self.message = gui.add_markdown("; ".join(sim.notes))
         self.breakdown = gui.add_markdown("")
         self.contact = gui.add_markdown("")
+        self._accepted = {}
+        self._add_scene_menu(app)
         fabric = sim.fabric
         with gui.add_folder("Garment"):
             self.motion = gui.add_dropdown("motion", sim.motions, initial_value=sim.motion)
@@ -314,7 +355,7 @@ class ViserViewer:
         self.progress = gui.add_progress_bar(100.0, visible=False)
         fabric_handles = {"density": self.fabric_density, "kappa_s": self.kappa_s, "kappa_b": self.kappa_b,
                           "friction": self.friction}  # fmt: skip
-        self._accepted = {id(handle): handle.value for handle in (self.motion, self.preset, *fabric_handles.values())}
+        self._accepted.update({id(h): h.value for h in (self.motion, self.preset, *fabric_handles.values())})
 
         def fabric_changed(name):
             return lambda value: app.submit(
@@ -341,9 +382,8 @@ class ViserViewer:
         self.release.on_click(lambda _e: app.submit("release", sim.release))
         self.pin.on_click(lambda _e: app.submit("pin", sim.pin_picked))
         self.reset.on_click(lambda _e: app.submit("reset", sim.reset, key="reset"))
-        server.scene.on_click()(self.on_click)
         self.mesh.on_drag("left")(self._on_drag)
-        server.on_client_connect(self._on_connect)
+        self.tinted.on_drag("left")(self._on_drag)
 
     def _sync_fabric(self) -> None:
         """The fabric sliders and menu show the fabric in use (after a preset or a refused value)."""
@@ -360,11 +400,31 @@ class ViserViewer:
             if handle.value != value:
                 self._set_quietly(handle, value)
 
+    def _tint(self, near: np.ndarray, colors: np.ndarray) -> None:
+        """Show the garment's faces that have a vertex in ``near`` (``[V]`` bool) in that vertex's colour of
+        ``colors`` (``[V, 3]`` uint8), the others in the garment's colour; nothing is sent when ``near`` is as
+        last shown."""
+        if self._near is not None and np.array_equal(near, self._near):
+            return
+        self._near = near
+        faces = self._garment_faces
+        touching = near[faces].any(1)
+        if touching.any():
+            self.tinted.faces = faces[touching]
+            self.tinted.color = tuple(int(c) for c in colors[near][0])
+        self.tinted.visible = bool(touching.any())
+        # an empty face list draws nothing in either mesh: the hidden mesh keeps its last faces
+        if not touching.all():
+            self.mesh.faces = faces[~touching]
+        self.mesh.visible = not touching.all()
+
     def _update_garment(self, app: DemoApp) -> None:
         sim = app.simulation
         with self.server.atomic():
-            self.mesh.vertices = sim.deformed_mesh_vertices().numpy()
+            vertices = sim.deformed_mesh_vertices().numpy()
+            self.mesh.vertices = self.tinted.vertices = vertices
             self.avatar.vertices = sim.body_vertices().numpy()
+            self._tint(sim.near_body().numpy(), (sim.vertex_colors().numpy() * 255).round().astype(np.uint8))
         self._sync_gizmo()
         contact = sim.contact()
         seconds = sim.time_breakdown()["seconds_per_step"]
@@ -375,7 +435,8 @@ class ViserViewer:
         self.breakdown.content = ", ".join(f"{name} {1e3 * value:.1f} ms" for name, value in seconds.items())
         body, own = contact["min_body_m"], contact["min_self_m"]
         self.contact.content = (
-            f"contact: {contact['near']} vertices within d̂, min distance to body "
+            f"contact: {contact['near']} vertices within d̂ = {1e3 * contact['reach_m']:g} mm (tinted), "
+            "min distance to body "
             f"{f'{1e3 * body:.2f} mm' if np.isfinite(body) else 'far'}, to itself "
             f"{f'{1e3 * own:.2f} mm' if np.isfinite(own) else '> d̂'}, {contact['inside']} vertices inside the body"
         )

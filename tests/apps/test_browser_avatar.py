@@ -1,6 +1,7 @@
 """End to end in a real browser: the meshcat page of the dressed avatar (``apps.demo --scene avatar``) pauses and
 resumes the walk, drags the skirt's hem sideways and sees it follow with no vertex inside the body, and changes κb
-through its slider, which changes how the dragged hem hangs. Writes a screenshot of the page while dragging.
+through its slider, which changes how the dragged hem hangs; then switches to the plant and back through the scene
+menu. Writes a screenshot of the page while dragging.
 
 At the session's CPU size (the procedural skirt of 96 vertices). Needs Debian's ``chromium`` and the
 ``playwright`` package; skipped when chromium is absent, unless the environment variable CI is set.
@@ -165,6 +166,17 @@ def test_meshcat_page_pauses_the_walk_drags_the_hem_and_sets_the_bending(device,
             assert "failed" not in " ".join(app.errors), app.errors
             picture = shots / "avatar_viewer.png"
             print(f"\navatar page: hem ring moved {1e3 * moved:.0f} mm by κb ×8; screenshot {picture}")
+
+            # The scene menu: to the plant and back to the avatar, without a restart.
+            page.select_option("#scene", "plant")
+            assert _poll(page, app, lambda: app.scene == "plant", 60.0), f"errors {app.errors}"
+            assert _poll(page, app, lambda: page.is_visible("#young_modulus") and not page.is_visible("#garment-panel"))
+            assert page.title() == "PIE-NeRF drag-and-force demo"
+            page.select_option("#scene", "avatar")
+            assert _poll(page, app, lambda: app.scene == "avatar", 60.0), f"errors {app.errors}"
+            garment_shown = lambda: page.is_visible("#garment-panel") and page.input_value("#scene") == "avatar"  # noqa: E731
+            assert _poll(page, app, garment_shown)
+            assert app.simulation is not sim and "failed" not in " ".join(app.errors), app.errors
             browser.close()
     finally:
         app.close()

@@ -1,5 +1,6 @@
 """apps.demo: the smoke runs exit 0, with the mesh and with the NeRF render mode; a bad or busy port, or a frame
-budget that is not positive, stops the start at once with the fix."""
+budget that is not positive, stops the start at once with the fix; a user's capture plays, a folder that is not one
+is refused."""
 
 from __future__ import annotations
 
@@ -10,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from apps import demo
+from tests.physavatar.handmade_capture import build_handmade_capture
 from tests.pienerf.viewer.test_loop import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -91,3 +94,22 @@ def test_a_port_in_use_is_named_with_the_fix(device, viewer):
         )
     assert result.returncode == 2, result.stderr[-2000:]
     assert f"cannot listen on 127.0.0.1:{port}" in result.stderr and "--port N" in result.stderr
+
+
+def test_smoke_run_plays_a_users_capture(device, tmp_path):
+    build_handmade_capture(tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "apps.demo", "--smoke", "--scene", "avatar", "--capture", str(tmp_path), "--port",
+         str(free_port()), "--device", device],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "smoke: 3 steps of avatar" in result.stdout
+    assert f"on the body of the capture {tmp_path.name}: 4 frames at 30 fps" in result.stderr
+
+
+def test_a_folder_that_is_not_a_capture_stops_the_start_with_the_fix(tmp_path, capsys):
+    argv = ["--smoke", "--scene", "avatar", "--capture", str(tmp_path), "--port", "0", "--device", "cpu"]
+    assert demo.main(argv) == 2
+    error = capsys.readouterr().err
+    assert "is not a capture this viewer can play" in error and "transforms.json" in error

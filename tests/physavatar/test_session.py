@@ -1,5 +1,5 @@
 """The interactive garment session behind the viewer's verbs, at small size: drag, pin, pause and scrub, fabric
-sliders and presets, the contact counters."""
+sliders and presets, the contact counters; a user's capture played in place of the mannequin."""
 
 import math
 
@@ -7,7 +7,9 @@ import pytest
 import torch
 
 from physavatar.body import raise_arms, save_bvh
-from physavatar.session import CONTACT_RGB, FABRIC_PRESETS, AvatarConfig, AvatarSimulation
+from physavatar.capture import load_capture_folder
+from physavatar.session import CAPTURE_MOTION, CONTACT_RGB, FABRIC_PRESETS, AvatarConfig, AvatarSimulation
+from tests.physavatar.handmade_capture import FPS, build_handmade_capture
 
 F64 = torch.float64
 
@@ -165,3 +167,52 @@ def test_a_bvh_file_plays_eased_in_from_rest_and_loops_onto_its_first_pose(sessi
             sim.set_motion(str(tmp_path / "missing.bvh"))
     finally:
         sim.set_motion("walk")
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory):
+    """The hand-made user capture (4 frames at 30 fps, z-up, a garment patch pushed into the body)."""
+    folder = tmp_path_factory.mktemp("capture")
+    build_handmade_capture(folder)
+    return folder
+
+
+def test_a_captures_body_sequence_plays_with_its_garment_resolved_and_loops(device, capture):
+    sim = AvatarSimulation(AvatarConfig(capture=str(capture)))
+    folder = load_capture_folder(capture, views=False)
+    assert folder.film is None and folder.fps == FPS
+    assert sim.motions == (CAPTURE_MOTION,) and sim.motion == CAPTURE_MOTION
+    assert sim.mesh_faces.shape == folder.garment_faces.shape and "the capture's garment" in sim.notes[0]
+    # 4 frames at 30 fps are 0.1 s: at 25 fps frames 0, 1.2, 2.4 and 3 (the last, clamped), then back to 0
+    assert sim.frame_count == 7
+    body = folder.body_frames.to(sim.clip.body)
+    torch.testing.assert_close(sim.clip.body[0], body[0], rtol=0.0, atol=0.0)
+    torch.testing.assert_close(sim.clip.body[1], torch.lerp(body[1], body[2], 0.2), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(sim.clip.body[3], body[3], rtol=0.0, atol=0.0)
+    torch.testing.assert_close(sim.clip.body[6], body[0], rtol=0.0, atol=0.0)
+    # the pushed patch starts outside the body, and nothing goes inside over two loops
+    assert sim.contact()["inside"] == 0
+    frames = []
+    for _ in range(12):
+        sim.step()
+        frames.append(sim.frame)
+        assert sim.contact()["inside"] == 0
+    assert frames == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0]  # loops from the last onto 0's pose
+    with pytest.raises(ValueError, match="a capture plays its own: capture"):
+        sim.set_motion("walk")
+
+
+def test_a_capture_wears_another_garment_file_with_its_boundary_chosen(device, capture):
+    sim = AvatarSimulation(AvatarConfig(capture=str(capture), garment=str(capture / "garment.obj")))
+    assert "garment.obj" in sim.notes[0] and "(automatic)" in sim.notes[1]
+    assert sim.contact()["inside"] == 0
+
+
+def test_a_folder_that_is_not_a_capture_is_refused_with_the_fix(tmp_path):
+    with pytest.raises(ValueError, match="is not a folder; pass a capture folder"):
+        AvatarConfig(capture=str(tmp_path / "missing"))
+    with pytest.raises(ValueError, match="must be an OBJ/PLY file"):
+        AvatarConfig(capture=str(tmp_path), garment="skirt7271")
+    (tmp_path / "body").mkdir()
+    with pytest.raises(ValueError, match=r"transforms\.json.*docs/capture\.md.*apps\.avatar check"):
+        AvatarSimulation(AvatarConfig(capture=str(tmp_path)))

@@ -251,6 +251,7 @@
   for (const name of ["motion", "preset"]) {
     element(name).addEventListener("change", (event) => send({ type: "set", name, value: event.target.value }));
   }
+  element("scene").addEventListener("change", (event) => send({ type: "scene", name: event.target.value }));
   for (const name of ["model", "render_mode"]) {
     element(name).addEventListener("change", (event) => send({ type: "set", name, value: event.target.value }));
   }
@@ -278,6 +279,9 @@
 
   function showControls(controls) {
     stats.controls = controls;
+    const scenes = controls.scenes || [];
+    element("scene-panel").hidden = scenes.length < 2;
+    if (scenes.length) fillSelect(element("scene"), scenes, controls.scene);
     const garment = controls.kind === "garment";
     const title = garment ? "PhysAvatar garment drag-and-force demo" : "PIE-NeRF drag-and-force demo";
     element("title").textContent = title;

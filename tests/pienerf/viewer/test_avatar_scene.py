@@ -125,3 +125,73 @@ def test_the_viser_panel_shows_the_garment_and_a_click_picks_it(device):
         assert viewer._gizmo is None and app.errors == []
     finally:
         app.close()
+
+
+def _broken(progress):
+    progress("placing the garment", 0.3)
+    raise ValueError("no garment fits")
+
+
+def test_the_scene_menu_switches_to_and_from_the_avatar_and_keeps_the_scene_a_build_fails(device):
+    app = build_app("plant", "meshcat", "127.0.0.1", 0, smoke=True, scenes={"avatar": _avatar, "broken": _broken})
+    try:
+        viewer, sent = app.viewer, []
+        viewer.server.send_json = lambda message, **_: sent.append(message)
+        viewer._send_controls()
+        assert sent[-1]["scenes"] == ["plant", "teapot", "jelly", "cloth", "sculpture", "avatar", "broken"]
+        for message, why in (
+            ({"type": "scene", "name": "mars"}, "unknown scene 'mars'"),
+            ({"type": "scene", "name": 5}, "unknown scene '5'"),
+            ({"type": "scene"}, "unknown scene 'None'"),
+        ):
+            with pytest.raises(ValueError, match=why):
+                viewer.on_message(CLIENT, message)
+        assert app.commands.empty()
+        _send(app, type="scene", name="avatar")
+        assert app.scene == "avatar" and app.simulation.kind == "garment" and app.errors == []
+        app.tick()
+        controls = [m for m in sent if m["type"] == "controls"][-1]
+        assert controls["kind"] == "garment" and controls["scene"] == "avatar"
+        assert any(m["type"] == "progress" and m["stage"].startswith("avatar: ") for m in sent)
+        shown = app.simulation
+        _send(app, type="scene", name="broken")
+        assert app.simulation is shown and app.scene == "avatar"
+        assert "the broken scene could not be built (no garment fits); still showing avatar" in app.errors[-1]
+        assert [m for m in sent if m["type"] == "progress"][-1]["fraction"] is None  # the progress bar went
+        app.tick()
+        _send(app, type="scene", name="teapot")
+        assert app.scene == "teapot" and getattr(app.simulation, "kind", "body") == "body"
+        app.tick()
+        assert [m for m in sent if m["type"] == "controls"][-1]["scene"] == "teapot" and len(app.errors) == 1
+    finally:
+        app.close()
+
+
+def test_the_viser_panel_switches_scene_and_tints_the_garment_near_the_body(device):
+    app = build_app("plant", "viser", "127.0.0.1", 0, smoke=True, scenes={"avatar": _avatar})
+    try:
+        viewer = app.viewer
+        assert viewer.scene_menu.options == ("plant", "teapot", "jelly", "cloth", "sculpture", "avatar")
+        app.tick()
+        app.choose_scene("avatar")
+        app.run_commands()
+        assert app.scene == "avatar" and viewer.scene_menu.value == "avatar" and viewer.motion.value == "walk"
+        sim, faces = app.simulation, app.simulation.mesh_faces.numpy()
+        for _ in range(40):  # the walking legs reach the skirt within the first steps
+            app.tick()
+            near = sim.near_body().numpy()
+            if near.any():
+                break
+        assert near.any(), "no garment vertex came within d̂ of the body"
+        touching = near[faces].any(1)
+        assert viewer.tinted.visible and np.array_equal(viewer.tinted.faces, faces[touching])
+        assert np.array_equal(viewer.mesh.faces, faces[~touching])
+        assert viewer.tinted.color == (255, 217, 26)  # physavatar.session.CONTACT_RGB
+        assert f"contact: {int(near.sum())} vertices within d̂" in viewer.contact.content
+        app.choose_scene("plant")
+        app.run_commands()
+        app.tick()
+        assert app.scene == "plant" and viewer.scene_menu.value == "plant" and not viewer._garment
+        assert app.errors == []
+    finally:
+        app.close()
