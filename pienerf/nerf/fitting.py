@@ -92,8 +92,11 @@ class NerfFit:
             raise ValueError(f"max_views must be at least 2 (or None for all), got {self.max_views}")
 
     def digest(self, **source) -> str:
-        """Ten hex digits of a hash over these settings, the recipe version and ``source`` (what was fitted)."""
-        payload = {"format": _FORMAT, "fit": asdict(self), "source": source}
+        """Ten hex digits of a hash over these settings, the recipe version and ``source`` (what was fitted). What
+        runs the MLPs (``ngp.mlp``) is left out, as the device is: it changes how a fit is computed, not what it is."""
+        fit = asdict(self)
+        fit["ngp"].pop("mlp", None)
+        payload = {"format": _FORMAT, "fit": fit, "source": source}
         return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 
