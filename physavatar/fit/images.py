@@ -37,14 +37,14 @@ from dataclasses import dataclass
 import torch
 
 from kernels import backend
-from physavatar.capture import Capture
+from physavatar.capture import Capture, Lighting
 from physavatar.cloth import STIFFNESS_RANGE, ClothConfig, RolloutScene, rollout
 from physavatar.fit.estimation import FabricParameters
 from physavatar.fit.gaussians import photometric_loss
 from physavatar.fit.regions import check_regions
 from physavatar.fit.tracking import AvatarGaussians, TrackConfig, fit_first_frame
 
-__all__ = ["ImageEstimate", "ImageFitConfig", "estimate_images", "image_loss"]
+__all__ = ["ImageEstimate", "ImageFitConfig", "SunRelighting", "estimate_images", "image_loss"]
 
 F64 = torch.float64
 NEWTON_CAP = 400
@@ -75,11 +75,15 @@ class ImageFitConfig:
             the Newton iterations of the estimation fabric's 1e-4.
         appearance: the first frame's appearance fit and the Gaussians' layout (:class:`TrackConfig`: its
             ``first_iterations``, learning rates, ``weight_l1``, ``face_subdivisions`` and ``normal_scale``).
+        relight: when the capture's light is known (a synthetic capture's ``lighting``), the garment's colours
+            follow its faces' turn toward the sun (:class:`SunRelighting`); else, or when ``False``, they stay the
+            first frame's.
     """
 
     iterations: int = 15
     weight_mask: float = 0.0
     newton_tolerance: float | None = 1e-3
+    relight: bool = True
     appearance: TrackConfig = TrackConfig()
 
     def __post_init__(self):
@@ -152,6 +156,63 @@ def _global(density: float, kappa_s: torch.Tensor, kappa_b: torch.Tensor, region
     return FabricParameters(density, *(float(torch.exp((share * k.log()).sum())) for k in (kappa_s, kappa_b)))
 
 
+class SunRelighting:
+    """The garment's colours as its faces turn toward or away from the capture's sun.
+
+    The first frame's appearance fit gives each garment Gaussian one colour, which holds its albedo times the light it
+    received there: ``c = ρ ⊙ (L_a · AO + L_s · max(0, n̂₀ · l̂) · V)`` (:mod:`physavatar.capture.shading`). As the
+    garment moves its sub-triangle's normal ``n̂_t`` turns, and so does the sun's share. With the ambient occlusion
+    and the sun's visibility taken as they were on the first frame, the colour at frame ``t`` is
+
+        c_t = c ⊙ (L_a + L_s · max(0, n̂_t · l̂)) / (L_a + L_s · max(0, n̂₀ · l̂)),
+
+    differentiable in the vertices through ``n̂_t``. Each normal is turned away from the body (the side a camera
+    sees of a garment worn over it), chosen on the first frame and kept. Without it the fixed colours read a fold
+    that turns toward the sun as a wrong position, which biases the stiffness the fit finds.
+
+    Args:
+        gaussians: the avatar's Gaussians (their garment subdivision).
+        first_vertices: ``[V, 3]`` the garment on the first frame, m (the frame the colours were fitted on).
+        body_vertices: ``[B, 3]`` the body on the first frame, m (``B = 0``: normals turned away from the garment's
+            centroid).
+        lighting: the capture's light.
+    """
+
+    def __init__(
+        self, gaussians: AvatarGaussians, first_vertices: torch.Tensor, body_vertices: torch.Tensor, lighting: Lighting
+    ):
+        self.subdivision = gaussians.subdivision
+        x = first_vertices.detach()
+        normals, centres = self._frames(x)
+        body = body_vertices.detach().to(x)
+        if body.shape[0]:
+            nearest = torch.cat([body[torch.cdist(c, body).argmin(1)] for c in centres.split(1 << 14)])
+        else:
+            nearest = centres.mean(0, keepdim=True).expand_as(centres)
+        side = torch.sign((normals * (centres - nearest)).sum(-1))
+        self.side = torch.where(side == 0, torch.ones_like(side), side)
+        self.ambient, self.sun, self.to_sun = (
+            torch.tensor(v, dtype=x.dtype, device=x.device)
+            for v in (lighting.ambient, lighting.sun, lighting.sun_direction)
+        )
+        self.first = self._light(normals)
+
+    def _frames(self, vertices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Unit normals and centres ``[F·4^L, 3]`` of the garment's sub-triangles."""
+        fine = self.subdivision(vertices)[self.subdivision.faces]
+        normals = torch.linalg.cross(fine[:, 1] - fine[:, 0], fine[:, 2] - fine[:, 0])
+        return normals / normals.norm(dim=-1, keepdim=True).clamp_min(1e-30), fine.mean(1)
+
+    def _light(self, normals: torch.Tensor) -> torch.Tensor:
+        facing = (self.side * (normals @ self.to_sun)).clamp_min(0.0)
+        return self.ambient + self.sun * facing[:, None]
+
+    def colors(self, colors: torch.Tensor, vertices: torch.Tensor) -> torch.Tensor:
+        """``[F·4^L, 3]`` the Gaussians' ``colors`` relit for the garment at ``[V, 3]`` ``vertices``."""
+        light = self._light(self._frames(vertices)[0])
+        return colors * (light / self.first).to(colors.dtype)
+
+
 def image_loss(
     gaussians: AvatarGaussians,
     frames: torch.Tensor,
@@ -161,6 +222,7 @@ def image_loss(
     weight_l1: float,
     weight_mask: float,
     backward: bool = False,
+    relighting: SunRelighting | None = None,
 ) -> tuple[float, torch.Tensor | None]:
     """The image loss of a garment sequence, and its gradient in the garment's vertices.
 
@@ -177,6 +239,8 @@ def image_loss(
         weight_l1: ``λ`` of Eq. 1.
         weight_mask: ``w``.
         backward: also return ``∂L/∂frames`` ``[T, V, 3]`` (zero at frame 0).
+        relighting: the garment's colours follow its faces' turn toward the sun (:class:`SunRelighting`); ``None``:
+            fixed colours.
 
     Returns:
         ``(L, ∂L/∂frames or None)``.
@@ -186,7 +250,8 @@ def image_loss(
     total = 0.0
     for t in range(1, count):
         with torch.set_grad_enabled(backward):
-            loss = photometric_loss(gaussians.render(leaf[t], body_frames[t]), images[t], weight_l1)
+            colors = None if relighting is None else relighting.colors(gaussians.garment.colors, leaf[t])
+            loss = photometric_loss(gaussians.render(leaf[t], body_frames[t], colors), images[t], weight_l1)
             if weight_mask > 0.0:
                 coverage = gaussians.garment_coverage(leaf[t], body_frames[t])
                 loss = loss + weight_mask * (coverage - masks[t]).square().mean()
@@ -269,6 +334,9 @@ def estimate_images(
     appearance_seconds = time.perf_counter() - start
     images = capture.images.to(dev, torch.float32)
     masks = capture.masks.to(dev, torch.float32)
+    relighting = None
+    if config.relight and capture.lighting is not None:
+        relighting = SunRelighting(gaussians, x0, body[0], capture.lighting)
     fabric = dataclasses.replace(
         fabric,
         max_newton_iterations=max(fabric.max_newton_iterations, NEWTON_CAP),
@@ -292,7 +360,8 @@ def estimate_images(
             sequence = simulate()
         with backend.one_torch_thread_on_cpu():
             loss, grad = image_loss(
-                gaussians, sequence, body, images, masks, config.appearance.weight_l1, config.weight_mask, backward
+                gaussians, sequence, body, images, masks, config.appearance.weight_l1, config.weight_mask, backward,
+                relighting,
             )
         if backward:
             sequence.backward(grad * scale)

@@ -1,15 +1,19 @@
 """physavatar.fit.images: the fabric fitted to images through the rollout and the Gaussians, no tracked mesh."""
 
+import math
+from types import SimpleNamespace
+
 import pytest
 import torch
 
 from kernels import backend
 from physavatar.body import Body, named_motion
-from physavatar.capture import CameraRig, Capture
+from physavatar.capture import CameraRig, Capture, Lighting
 from physavatar.cloth import RolloutScene, rollout
 from physavatar.drive import BodyDriver
 from physavatar.fit import SYNTHETIC_FABRIC, AvatarGaussians, FabricParameters, ImageFitConfig, estimate_images
-from physavatar.fit.images import image_loss
+from physavatar.fit.gaussians import Subdivision
+from physavatar.fit.images import SunRelighting, image_loss
 from physavatar.garment import procedural_skirt, select_boundary
 
 FRAMES = 6
@@ -72,6 +76,35 @@ def test_the_image_loss_is_zero_at_the_truth_and_its_gradient_reaches_every_movi
     assert bool((grad[0] == 0).all()) and all(float(grad[t].abs().sum()) > 0 for t in range(1, FRAMES))
     masked, _ = image_loss(gaussians, softer, body, images, masks, 0.8, 1.0)
     assert masked > loss  # the soft coverage never equals a binary mask exactly
+
+
+@pytest.mark.parametrize("tilt_deg, facing", [(0.0, 1.0), (60.0, 0.5), (120.0, 0.0)])
+def test_relit_colours_follow_the_sun_as_a_sheet_tilts_away(device, tilt_deg, facing):
+    """A square sheet 1 m above a one-vertex body, facing the sun straight up on the first frame (its winding faces
+    down: the normal is turned away from the body), tilted about x: each colour is scaled by
+    ``(L_a + L_s · max(0, cos tilt)) / (L_a + L_s)``, and the colours' gradient reaches the vertices while the sun
+    lights them."""
+    dev = backend.torch_device()
+    f64 = dict(dtype=torch.float64, device=dev)
+    square = torch.tensor([[-1.0, 0.0, -1.0], [1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [-1.0, 0.0, 1.0]], **f64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]], device=dev)  # wound downward: the side rule turns the normal up
+    body = torch.zeros(1, 3, **f64)
+    lighting = Lighting(ambient=(0.3, 0.4, 0.5), sun=(0.6, 0.5, 0.2), sun_direction=(0.0, 1.0, 0.0))
+    gaussians = SimpleNamespace(subdivision=Subdivision.of(faces, 4, 1))
+    lift = torch.tensor([0.0, 1.0, 0.0], **f64)
+    relight = SunRelighting(gaussians, square + lift, body, lighting)
+    a = math.radians(tilt_deg)
+    turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, math.cos(a), -math.sin(a)], [0.0, math.sin(a), math.cos(a)]], **f64)
+    tilted = (square @ turn.T + lift).requires_grad_(True)
+    colors = torch.rand(8, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64).to(dev)
+    relit = relight.colors(colors, tilted)
+    ambient, sun = torch.tensor(lighting.ambient, **f64), torch.tensor(lighting.sun, **f64)
+    expected = colors * (ambient + sun * facing) / (ambient + sun)
+    # a cosine and a ratio in float64: a few ulps of the unit values
+    assert torch.allclose(relit, expected, rtol=1e-12, atol=1e-12), (relit - expected).abs().max()
+    relit.sum().backward()
+    moved = float(tilted.grad.abs().sum())
+    assert moved > 0.0 if 0.0 < facing < 1.0 else moved < 1e-12  # at a clamp or at the sun's peak: no first order
 
 
 def test_bad_inputs_are_refused_with_the_fix(filmed):
