@@ -2,6 +2,7 @@
 
 import copy
 import random
+from dataclasses import replace
 
 import pytest
 import torch
@@ -129,3 +130,21 @@ def test_fuzzed_checkpoints_load_or_fail_clearly(device, checkpoint):
             assert str(checkpoint) in str(error), f"case {case}: {error}"
             refused += 1
     assert refused > 30
+
+
+def test_the_table_dtype_round_trips_through_configs_and_checkpoints(device, tmp_path, checkpoint):
+    half = NGPConfig(**{**TINY.__dict__, "hashgrid": replace(TINY.hashgrid, table_dtype="float16")})
+    assert NGPConfig.from_dict(half.to_dict()) == half and half.to_dict()["hashgrid"]["table_dtype"] == "float16"
+    torch.manual_seed(0)
+    field = NGPField(half, AABB)
+    path = save_checkpoint(tmp_path / "half.pt", field, OccupancyGrid.for_field(field), 3)
+    loaded = load_checkpoint(path)
+    assert loaded.field.config == half and loaded.field.encoding.table.dtype == torch.float32
+    assert torch.equal(loaded.field.encoding.table.cpu(), field.encoding.table.detach())
+    assert torch.equal(loaded.field.encoding.read_table().cpu(), field.encoding.table.detach().half())
+
+    # A checkpoint written before the setting existed has no table_dtype: it loads with the float32 table.
+    payload = torch.load(checkpoint, weights_only=True)
+    del payload["config"]["hashgrid"]["table_dtype"]
+    torch.save(payload, checkpoint)
+    assert load_checkpoint(checkpoint).field.config.hashgrid.table_dtype == "float32"
