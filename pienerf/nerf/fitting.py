@@ -49,6 +49,9 @@ Z_UP_TO_Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
 """Rotation taking Blender's z-up world to the simulator's y-up one: (x, y, z) → (x, z, −y)."""
 
 _FORMAT = "1"
+_LATER_SETTINGS = {("ngp", "hashgrid", "table_dtype"): "float32"}
+"""Settings added after fits were first digested, with the value that behaves as before they existed: a fit that keeps
+that value digests without the setting, so the NeRFs fitted (and shipped) before it was added are still found."""
 """Bumped whenever the fitting recipe changes; part of every cached checkpoint's hash."""
 
 
@@ -93,7 +96,14 @@ class NerfFit:
 
     def digest(self, **source) -> str:
         """Ten hex digits of a hash over these settings, the recipe version and ``source`` (what was fitted)."""
-        payload = {"format": _FORMAT, "fit": asdict(self), "source": source}
+        settings = asdict(self)
+        for (*parents, name), unchanged in _LATER_SETTINGS.items():
+            where = settings
+            for parent in parents:
+                where = where[parent]
+            if where.get(name) == unchanged:
+                del where[name]
+        payload = {"format": _FORMAT, "fit": settings, "source": source}
         return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 

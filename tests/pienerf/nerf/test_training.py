@@ -9,6 +9,7 @@ import torch
 
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
+from pienerf.nerf.fitting import NerfFit
 from pienerf.nerf.training import TrainConfig, load_checkpoint, save_checkpoint
 
 TINY = NGPConfig(
@@ -148,3 +149,9 @@ def test_the_table_dtype_round_trips_through_configs_and_checkpoints(device, tmp
     del payload["config"]["hashgrid"]["table_dtype"]
     torch.save(payload, checkpoint)
     assert load_checkpoint(checkpoint).field.config.hashgrid.table_dtype == "float32"
+
+    # A fit's digest names its NeRF in caches and assets: a float16 table is another NeRF; a float32 one digests as
+    # before the setting existed (the shipped NeRF's name, tests/pienerf/viewer, still matches).
+    fit = NerfFit()
+    half_fit = replace(fit, ngp=replace(fit.ngp, hashgrid=replace(fit.ngp.hashgrid, table_dtype="float16")))
+    assert half_fit.digest(scene="plant") != fit.digest(scene="plant")
