@@ -662,9 +662,12 @@ class HashGridEncoding(torch.nn.Module):
 
     The table is a float32 parameter ``[L, T, F]``; move the module to the backend device with ``.to()``. With
     ``config.table_dtype == "float16"`` the kernels read a float16 copy of it (:meth:`read_table`), made again
-    exactly when the table changed: when the parameter's version counter moved (every in-place change through
-    torch: an optimiser step, ``copy_``, ``load_state_dict``), when its storage was replaced (``.to()``), or after
-    :meth:`mark_table_changed` (for writes torch does not count, through ``.data``).
+    exactly when the table changed: when the parameter's version counter moved (in-place changes through torch:
+    ``copy_``, ``load_state_dict``, a for-each or single-tensor optimiser step), when its storage was replaced
+    (``.to()``), or after :meth:`mark_table_changed`. Torch does not count every write: a fused optimiser step
+    (``torch.optim.Adam(..., fused=True)``, the trainer's on CUDA) and writes through ``.data`` leave the version
+    counter as it was, so whoever makes them announces them (:meth:`pienerf.nerf.field.NGPField.mark_weights_changed`
+    does, which the trainer calls after every step).
     """
 
     def __init__(self, config: HashGridConfig | None = None, framework: str | None = None):
@@ -684,8 +687,8 @@ class HashGridEncoding(torch.nn.Module):
         return self.config.output_dim
 
     def mark_table_changed(self) -> None:
-        """Announce a change of the table torch's version counter does not see (a write through ``.data``): the
-        float16 copy is made again at the next :meth:`read_table`."""
+        """Announce a change of the table torch's version counter does not see (a fused optimiser step, a write
+        through ``.data``): the float16 copy is made again at the next :meth:`read_table`."""
         self._generation += 1
 
     def read_table(self) -> torch.Tensor:

@@ -336,7 +336,8 @@ def test_float16_encoding_trains_a_float32_master_table(device, framework):
 
 def test_float16_copy_is_made_again_exactly_when_the_table_changes(device):
     """The copy's own version counter counts its refreshes: one per change of the master table (an optimiser step,
-    ``load_state_dict``, a write through ``.data`` announced by ``mark_table_changed``), none between changes."""
+    ``load_state_dict``; a fused optimiser step or a write through ``.data``, which torch does not count, once announced
+    by ``mark_table_changed``), none between changes."""
     config = HashGridConfig(levels=2, features=2, log2_table_size=8, base_resolution=2, max_resolution=8,
                             table_dtype="float16")
     encoding = HashGridEncoding(config).to(backend.torch_device())
@@ -366,6 +367,12 @@ def test_float16_copy_is_made_again_exactly_when_the_table_changes(device):
     assert refreshes() == 1 and float(copy.max()) == 0.5
     optimizer.step()
     encoding.mark_table_changed()  # a change seen twice is copied once
+    assert refreshes() == 1
+    fused = torch.optim.Adam(encoding.parameters(), lr=1e-2, fused=True)
+    fused.step()  # the version counter does not move ...
+    stale = encoding.read_table()
+    assert stale._version == made and not torch.equal(stale, encoding.table.detach().half()), "fused steps go unseen"
+    encoding.mark_table_changed()  # ... so the step is announced, as NGPField.mark_weights_changed does in training
     assert refreshes() == 1
 
 
