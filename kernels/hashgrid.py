@@ -13,6 +13,13 @@ Conventions:
 * The gradient flows to the table only. ``dL/dx`` (the encoding's spatial derivative) is not
   implemented: the autograd function refuses positions that require a gradient.
 * The hash works in ``uint32`` arithmetic (products wrap modulo ``2^32``), as in the paper.
+* The table the forward pass gathers from is float32 or float16 (:attr:`HashGridConfig.table_dtype`); either way
+  the interpolation is float32 and so are the features. A float16 table halves the bytes of a gathered row (4 B at
+  ``F = 2``, one 32-bit load on Warp) and the table's footprint in the L2 cache (32 MB at 16 levels of ``2^19`` rows,
+  which fits an H100's or H200's 50 MB L2, where the float32 table's 64 MB does not). Training keeps the float32
+  table as the parameter (master copy), its gradient and the optimiser's state float32, and
+  :class:`HashGridEncoding` rounds it into the float16 copy once after each change: the rounding then never
+  accumulates over steps, and updates smaller than float16's spacing are not lost.
 
 Both frameworks are kept, because the faster one depends on the device: on the CPU Taichi runs on every core and
 Warp on one; on CUDA the Warp kernels are faster (figures in ``docs/benchmarks.md``): their threads run level by
@@ -37,6 +44,7 @@ __all__ = [
     "HashGridConfig",
     "HashGridEncoding",
     "HashGridFunction",
+    "TABLE_DTYPES",
     "default_framework",
     "hashgrid_backward",
     "hashgrid_forward",
@@ -48,6 +56,9 @@ default_framework = backend.default_framework
 
 HASH_PRIMES = (1, 2654435761, 805459861)
 """The per-axis factors ``pi_i`` of the spatial hash (Eq. 4); ``pi_1 = 1`` keeps x-neighbours adjacent."""
+
+TABLE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
+"""The storage types :attr:`HashGridConfig.table_dtype` names, with their torch dtypes."""
 
 _MAX_TABLE_SIZE = 2**31 - 1
 _MAX_THREADS = 2**31 - 1
@@ -175,19 +186,45 @@ def _red_add_pair_wp(grad: wp.array(dtype=wp.float32), index: wp.int32, a: wp.fl
     ...
 
 
+_HALF2_TO_VEC2 = """
+wp::half lo, hi;
+lo.u = static_cast<unsigned short>(bits & 0xFFFFu);
+hi.u = static_cast<unsigned short>(bits >> 16);
+return wp::vec2(wp::half_to_float(lo), wp::half_to_float(hi));
+"""
+
+
+@wp.func_native(_HALF2_TO_VEC2)
+def _half2_to_vec2_wp(bits: wp.uint32) -> wp.vec2:
+    """The two float16 of one 32-bit word as float32, the one at the lower address (the low 16 bits, little-endian)
+    first: a ``half2``, i.e. two features of a float16 table row read with one 32-bit load."""
+    ...
+
+
 @functools.cache
-def _forward_kernel_wp(features: int):
+def _forward_kernel_wp(features: int, storage: str = "float32"):
     """Forward Warp kernel for ``features`` floats per row: thread ``(level, i)``, output feature-major ``[L F, N]``.
 
     Level-major threads: the blocks in flight read one level's table, which stays in L2 (a 2^19-row level is 4 MB,
     all 16 levels 64 MB); the feature-major output lets a warp's 32 threads write 32 consecutive floats.
+
+    ``storage`` is how the table arrives: ``"float32"`` (``[L, T]`` rows of ``F`` floats, one vector load per row),
+    ``"half2"`` (a float16 table with ``F`` even, seen as ``[L, T, F / 2]`` 32-bit words: one load per feature pair,
+    half the bytes per gathered row) or ``"float16"`` (``[L, T, F]`` float16, ``F`` odd). Interpolation is float32
+    in all three.
     """
     vec = wp.types.vector(length=features, dtype=wp.float32)
+    table_type = {
+        "float32": wp.array2d(dtype=vec),
+        "half2": wp.array3d(dtype=wp.uint32),
+        "float16": wp.array3d(dtype=wp.float16),
+    }[storage]
+    pairs = features // 2
 
     @wp.kernel(enable_backward=False, module="unique")
     def _hashgrid_forward_wp(
         x: wp.array(dtype=wp.vec3),
-        table: wp.array2d(dtype=vec),
+        table: table_type,
         resolutions: wp.array(dtype=wp.int32),
         out: wp.array2d(dtype=wp.float32),
     ):
@@ -200,7 +237,16 @@ def _forward_kernel_wp(features: int):
         for corner in range(8):
             offset, weight = _corner_wp(corner, local)
             row = _vertex_index_wp(cell + offset, resolution, dense, table_size)
-            acc += weight * table[level, row]
+            if wp.static(storage == "float32"):
+                acc += weight * table[level, row]
+            elif wp.static(storage == "half2"):
+                for k in range(pairs):
+                    pair = _half2_to_vec2_wp(table[level, row, k])
+                    acc[2 * k] += weight * pair[0]
+                    acc[2 * k + 1] += weight * pair[1]
+            else:
+                for f in range(features):
+                    acc[f] += weight * wp.float32(table[level, row, f])
         for f in range(features):
             out[level * features + f, i] = acc[f]
 
@@ -304,7 +350,7 @@ def _corner_ti(corner: ti.template(), local):
 @ti.kernel
 def _hashgrid_forward_ti(
     x: ti.types.ndarray(dtype=ti.math.vec3, ndim=1),
-    table: ti.types.ndarray(dtype=ti.f32, ndim=3),
+    table: ti.types.ndarray(ndim=3),  # f32 or f16 (one compiled kernel each), interpolated in f32
     resolutions: ti.types.ndarray(dtype=ti.i32, ndim=1),
     out: ti.types.ndarray(dtype=ti.f32, ndim=2),
     features: ti.template(),
@@ -324,7 +370,7 @@ def _hashgrid_forward_ti(
             offset, weight = _corner_ti(corner, local)
             row = _vertex_index_ti(cell + offset, resolution, dense, table_size)
             for f in ti.static(range(features)):
-                acc[f] += weight * table[level, row, f]
+                acc[f] += weight * ti.cast(table[level, row, f], ti.f32)
         for f in ti.static(range(features)):
             out[i, level * features + f] = acc[f]
 
@@ -387,7 +433,9 @@ def hashgrid_forward(
 
     Args:
         x: float32 ``[N, 3]`` positions in the unit cube (clamped to ``[0, 1]^3``), on the backend device.
-        table: float32 ``[L, T, F]`` feature table, ``T`` rows of ``F`` features per level.
+        table: float32 or float16 ``[L, T, F]`` feature table, ``T`` rows of ``F`` features per level. A float16
+            table is read as such (half the bytes per gathered row; on Warp with ``F`` even, one 32-bit load per
+            feature pair) and interpolated in float32.
         resolutions: integer ``[L]`` grid resolutions ``N_l`` in cells per unit length
             (:func:`level_resolutions`), on any device; values are checked when it lives on the CPU.
         framework: ``"taichi"`` or ``"warp"``; ``None`` takes :func:`default_framework`.
@@ -401,7 +449,13 @@ def hashgrid_forward(
     levels, table_size, features = _check_table(table, "table")
     resolutions = _check_levels(x, resolutions, levels)
     if framework == "warp":
-        forward_kernel, vec = _forward_kernel_wp(features)
+        if table.dtype == torch.float32:
+            storage, warp_table, dtype = "float32", table, None
+        elif features % 2 == 0:  # feature pairs as 32-bit words: [L, T, F] float16 -> [L, T, F / 2] uint32
+            storage, warp_table, dtype = "half2", table.view(torch.int32), wp.uint32
+        else:
+            storage, warp_table, dtype = "float16", table, None
+        forward_kernel, vec = _forward_kernel_wp(features, storage)
         out = torch.empty(levels * features, x.shape[0], dtype=torch.float32, device=x.device)
         if x.shape[0] == 0:
             return out.t()
@@ -410,7 +464,7 @@ def hashgrid_forward(
             dim=(levels, x.shape[0]),
             inputs=[
                 backend.to_warp(x, dtype=wp.vec3),
-                backend.to_warp(table, dtype=vec),
+                backend.to_warp(warp_table, dtype=vec if storage == "float32" else dtype),
                 backend.to_warp(resolutions),
                 backend.to_warp(out),
             ],
@@ -514,23 +568,32 @@ def _row_or_feature_major(grad_out: torch.Tensor) -> bool:
 
 
 class HashGridFunction(torch.autograd.Function):
-    """Differentiable encoding: ``HashGridFunction.apply(x, table, resolutions, framework)``.
+    """Differentiable encoding: ``HashGridFunction.apply(x, table, resolutions, framework, stored)``.
 
-    The table receives its gradient from :func:`hashgrid_backward`. Positions must not require a
-    gradient: ``dL/dx`` is not implemented (detach ``x``, or differentiate density by finite differences).
+    The table receives its gradient from :func:`hashgrid_backward`, float32, cast to the table's dtype. Positions
+    must not require a gradient: ``dL/dx`` is not implemented (detach ``x``, or differentiate density by finite
+    differences).
+
+    ``stored``, optional: the table the kernels read instead of ``table``, of its shape (a float16 copy of a float32
+    master table, :class:`HashGridEncoding`); the gradient still goes to ``table``, which the backward never reads.
     """
 
     @staticmethod
-    def forward(ctx, x, table, resolutions, framework=None):
+    def forward(ctx, x, table, resolutions, framework=None, stored=None):
         if ctx.needs_input_grad[0]:
             raise ValueError(
                 "hash-grid encoding has no gradient with respect to positions; pass x.detach() "
                 "(only the table is differentiable)"
             )
+        if stored is not None and (not isinstance(stored, torch.Tensor) or stored.shape != table.shape):
+            raise ValueError(
+                f"stored must be a copy of the table of its shape {tuple(table.shape)}, got {_describe(stored)}"
+            )
         framework = backend.check_framework(framework)
-        out = hashgrid_forward(x, table, resolutions, framework=framework)
+        out = hashgrid_forward(x, table if stored is None else stored, resolutions, framework=framework)
         ctx.save_for_backward(x, resolutions)
         ctx.table_size = table.shape[1]
+        ctx.table_dtype = table.dtype
         ctx.framework = framework
         return out
 
@@ -544,7 +607,8 @@ class HashGridFunction(torch.autograd.Function):
             # a feature-major gradient (the training step's, see hashgrid_backward) goes as it is: Warp reads it in
             # place, which beats a row-major copy and its read (docs/benchmarks.md, kernels.hashgrid)
             grad_table = hashgrid_backward(x, grad_out, resolutions, ctx.table_size, framework=ctx.framework)
-        return None, grad_table, None, None
+            grad_table = grad_table.to(ctx.table_dtype)
+        return None, grad_table, None, None, None
 
 
 @dataclass(frozen=True)
@@ -559,6 +623,10 @@ class HashGridConfig:
         max_resolution: ``N_max``, cells per unit length of the finest grid; scale it with the scene
             (e.g. ``2048 * scene_extent`` for an unbounded scene's box).
         init_scale: table entries start uniform in ``[-init_scale, init_scale]`` (unitless features).
+        table_dtype: what the forward pass gathers from: ``"float32"``, the trained table itself, or ``"float16"``,
+            a float16 copy of it (half the bytes per gathered row; each stored value rounded to within a relative
+            ``2^-11``). Either way the parameter, its gradient and the optimiser's state stay float32: the float32
+            table is the master copy, and :class:`HashGridEncoding` makes the float16 copy again whenever it changed.
     """
 
     levels: int = 16
@@ -567,11 +635,16 @@ class HashGridConfig:
     base_resolution: int = 16
     max_resolution: int = 2048
     init_scale: float = 1e-4
+    table_dtype: str = "float32"
 
     def __post_init__(self):
         if self.features < 1 or not 0 <= self.log2_table_size <= 30 or self.init_scale < 0:
             raise ValueError(
                 f"need features >= 1, 0 <= log2_table_size <= 30 and init_scale >= 0, got {self}"
+            )
+        if self.table_dtype not in TABLE_DTYPES:
+            raise ValueError(
+                f"table_dtype must be one of {', '.join(map(repr, TABLE_DTYPES))}, got {self.table_dtype!r}"
             )
         level_resolutions(self.levels, self.base_resolution, self.max_resolution)
 
@@ -587,7 +660,14 @@ class HashGridConfig:
 class HashGridEncoding(torch.nn.Module):
     """Trainable hash-grid encoding: ``[N, 3]`` points in the unit cube to ``[N, L * F]`` features.
 
-    The table is a parameter ``[L, T, F]``; move the module to the backend device with ``.to()``.
+    The table is a float32 parameter ``[L, T, F]``; move the module to the backend device with ``.to()``. With
+    ``config.table_dtype == "float16"`` the kernels read a float16 copy of it (:meth:`read_table`), made again
+    exactly when the table changed: when the parameter's version counter moved (in-place changes through torch:
+    ``copy_``, ``load_state_dict``, a for-each or single-tensor optimiser step), when its storage was replaced
+    (``.to()``), or after :meth:`mark_table_changed`. Torch does not count every write: a fused optimiser step
+    (``torch.optim.Adam(..., fused=True)``, the trainer's on CUDA) and writes through ``.data`` leave the version
+    counter as it was, so whoever makes them announces them (:meth:`pienerf.nerf.field.NGPField.mark_weights_changed`
+    does, which the trainer calls after every step).
     """
 
     def __init__(self, config: HashGridConfig | None = None, framework: str | None = None):
@@ -598,14 +678,53 @@ class HashGridEncoding(torch.nn.Module):
         table = torch.empty(c.levels, c.table_size, c.features, dtype=torch.float32)
         self.table = torch.nn.Parameter(table.uniform_(-c.init_scale, c.init_scale))
         self.register_buffer("resolutions", level_resolutions(c.levels, c.base_resolution, c.max_resolution))
+        self._generation = 0
+        self._copy: torch.Tensor | None = None  # the float16 copy the kernels read
+        self._copied_from: tuple | None = None  # (source tensor, its version, generation) the copy was made at
 
     @property
     def output_dim(self) -> int:
         return self.config.output_dim
 
+    def mark_table_changed(self) -> None:
+        """Announce a change of the table torch's version counter does not see (a fused optimiser step, a write
+        through ``.data``): the float16 copy is made again at the next :meth:`read_table`."""
+        self._generation += 1
+
+    def read_table(self) -> torch.Tensor:
+        """The table the kernels read: the parameter itself (``table_dtype = "float32"``), or its float16 copy,
+        refreshed first when the parameter changed since the copy was made (class docstring). Not differentiable
+        in the float16 case: gradients reach the parameter through :meth:`forward`."""
+        table = self.table
+        dtype = TABLE_DTYPES[self.config.table_dtype]
+        if table.dtype == dtype:
+            return table
+        if self._copied_from is not None:
+            source, version, generation = self._copied_from
+            # the source is held, so its storage cannot be freed and reused by another tensor at the same address
+            if (
+                source.data_ptr() == table.data_ptr()
+                and source.device == table.device
+                and version == table._version
+                and generation == self._generation
+                and self._copy.shape == table.shape
+            ):
+                return self._copy
+        with torch.no_grad():
+            copy = self._copy
+            if copy is None or copy.shape != table.shape or copy.device != table.device or copy.is_inference():
+                copy = torch.empty(table.shape, dtype=dtype, device=table.device)
+            copy.copy_(table)  # round to nearest
+        self._copy = copy
+        self._copied_from = (table.detach(), table._version, self._generation)
+        return copy
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Features ``[N, L * F]`` of positions ``x`` ``[N, 3]`` (float32, unit cube, no gradient)."""
-        return HashGridFunction.apply(x, self.table, self.resolutions, self.framework)
+        stored = self.read_table()
+        return HashGridFunction.apply(
+            x, self.table, self.resolutions, self.framework, None if stored is self.table else stored
+        )
 
 
 def _describe(value) -> str:
@@ -615,10 +734,14 @@ def _describe(value) -> str:
 
 
 def _check_table(table: torch.Tensor, what: str) -> tuple[int, int, int]:
-    if not isinstance(table, torch.Tensor) or table.dtype != torch.float32:
-        raise TypeError(f"{what} must be a float32 tensor, got {_describe(table)}; convert it with .float()")
+    if not isinstance(table, torch.Tensor) or table.dtype not in TABLE_DTYPES.values():
+        raise TypeError(
+            f"{what} must be a float32 or float16 tensor, got {_describe(table)}; convert it with .float()"
+        )
     if table.dim() != 3 or min(table.shape) < 1:
         raise ValueError(f"{what} must be [L, T, F] with L, T, F >= 1, got {tuple(table.shape)}")
+    if not table.is_contiguous():
+        raise ValueError(f"{what} must be contiguous [L, T, F], got strides {table.stride()}; call .contiguous()")
     if table.shape[1] > _MAX_TABLE_SIZE:
         raise ValueError(f"{what} has T = {table.shape[1]} rows per level; at most 2^31 - 1 are supported")
     return tuple(table.shape)

@@ -246,8 +246,10 @@ class NGPField(torch.nn.Module):
 
     def mark_weights_changed(self) -> None:
         """Announce that the weights changed in place (an optimiser step, a copy into the parameters): bumps
-        :attr:`weights_version`, so that copies made from the old weights are made again."""
+        :attr:`weights_version`, so that copies made from the old weights are made again (the encoding's float16
+        table among them, :meth:`~kernels.hashgrid.HashGridEncoding.mark_table_changed`)."""
         self.weights_version += 1
+        self.encoding.mark_table_changed()
 
     def to_unit_cube(self, x: torch.Tensor) -> torch.Tensor:
         """World points ``[N, 3]`` (metres) to the encoding's unit cube, ``(x − lo) / (hi − lo)``."""
@@ -260,12 +262,16 @@ class NGPField(torch.nn.Module):
         """σ ``[N]`` (per metre, 0 outside the box) and the density MLP's outputs ``h`` ``[N, 1 + geometric]``.
 
         ``differentiable_in_x`` encodes with the torch reference (differentiable in ``x``, any float dtype)
-        instead of the float32 kernels. ``density_mlp``: evaluate this copy of the density MLP instead (see
+        instead of the kernels; with a float16 table it reads the kernels' float16 copy, not differentiable in the
+        table. ``density_mlp``: evaluate this copy of the density MLP instead (see
         :meth:`radiance`).
         """
         if differentiable_in_x:
             unit = self.to_unit_cube(x)
-            features = hashgrid_forward_torch(unit, self.encoding.table, self.encoding.resolutions)
+            table = self.encoding.table
+            if self.config.hashgrid.table_dtype != "float32":  # the values the kernels read: σ and ∇σ of one field
+                table = self.encoding.read_table().to(unit.dtype)
+            features = hashgrid_forward_torch(unit, table, self.encoding.resolutions)
         else:
             unit = self.to_unit_cube(x.detach().float())
             features = self.encoding(unit.contiguous())

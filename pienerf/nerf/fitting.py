@@ -51,6 +51,10 @@ Z_UP_TO_Y_UP = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
 _FORMAT = "1"
 """Bumped whenever the fitting recipe changes; part of every cached checkpoint's hash."""
 
+_LATER_SETTINGS = {("ngp", "hashgrid", "table_dtype"): "float32"}
+"""Settings added after fits were first digested, with the value that behaves as before they existed: a fit that keeps
+that value digests without the setting, so the NeRFs fitted (and shipped) before it was added are still found."""
+
 
 @dataclass(frozen=True)
 class NerfFit:
@@ -94,9 +98,15 @@ class NerfFit:
     def digest(self, **source) -> str:
         """Ten hex digits of a hash over these settings, the recipe version and ``source`` (what was fitted). What
         runs the MLPs (``ngp.mlp``) is left out, as the device is: it changes how a fit is computed, not what it is."""
-        fit = asdict(self)
-        fit["ngp"].pop("mlp", None)
-        payload = {"format": _FORMAT, "fit": fit, "source": source}
+        settings = asdict(self)
+        settings["ngp"].pop("mlp", None)
+        for (*parents, name), unchanged in _LATER_SETTINGS.items():
+            where = settings
+            for parent in parents:
+                where = where[parent]
+            if where.get(name) == unchanged:
+                del where[name]
+        payload = {"format": _FORMAT, "fit": settings, "source": source}
         return hashlib.sha1(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:10]
 
 

@@ -27,6 +27,14 @@ def test_copy_workloads_write_complete_records(device, tmp_path):
         assert r["params"]["elements"] == 1 << 20
 
 
+def test_the_hash_grid_workloads_measure_both_table_dtypes_in_one_run(device):
+    names = ["hashgrid_fwd", "hashgrid_fwd_half", "hashgrid_bwd", "hashgrid_bwd_half"]
+    records = bench.main(["--workload", ",".join(names), "--device", device, "--size", "smoke", "--reps", "1"])
+    assert [r["workload"] for r in records] == names
+    assert [r["params"]["table_dtype"] for r in records] == ["float32", "float16"] * 2
+    assert all(r["median_s"] > 0 and r["reference_median_s"] > 0 for r in records)
+
+
 @pytest.mark.slow
 def test_the_sheet_workload_runs_with_its_reference(device):
     """The sheet at smoke size with its reference (the solver on the autograd element energies): its steps see

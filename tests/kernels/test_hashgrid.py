@@ -6,6 +6,7 @@ import torch
 from kernels import backend
 from kernels.hashgrid import (
     FRAMEWORKS,
+    TABLE_DTYPES,
     HashGridConfig,
     HashGridEncoding,
     HashGridFunction,
@@ -241,7 +242,8 @@ def test_bad_inputs_raise_clear_errors(device):
     cases = [
         (lambda: hashgrid_forward(x.double(), table, resolutions), TypeError, "x must be a float32 tensor"),
         (lambda: hashgrid_forward(x[:, :2].contiguous(), table, resolutions), ValueError, r"x must be \[N, 3\]"),
-        (lambda: hashgrid_forward(x, table.half(), resolutions), TypeError, "table must be a float32"),
+        (lambda: hashgrid_forward(x, table.double(), resolutions), TypeError, "table must be a float32 or float16"),
+        (lambda: hashgrid_forward(x, table.transpose(0, 1), resolutions), ValueError, "table must be contiguous"),
         (lambda: hashgrid_forward(x, table[0], resolutions), ValueError, r"table must be \[L, T, F\]"),
         (lambda: hashgrid_forward(x, table, resolutions[:2]), ValueError, "one entry per table level"),
         (lambda: hashgrid_forward(x, table, resolutions.float()), TypeError, "int32 or int64"),
@@ -268,3 +270,113 @@ def test_positions_requiring_a_gradient_are_refused(device):
     with pytest.raises(ValueError, match=r"x\.detach\(\)"):
         encoding(x)
     assert HashGridFunction.apply(x.detach(), encoding.table, encoding.resolutions).shape == (4, 4)
+
+
+# -- float16 table storage ---------------------------------------------------------------------------------------------
+
+_HALF_ULP = 2.0**-11
+"""Rounding to float16 moves a normal value by at most this much relative (half its 2^-10 spacing)."""
+_HALF_SUBNORMAL_STEP = 2.0**-25
+"""... and a value below float16's smallest normal (2^-14) by at most half the subnormal spacing 2^-24, absolute."""
+
+
+def _float32_interpolation_bound(x, table, resolutions) -> torch.Tensor:
+    """``[N, L F]`` bound on how far two float32 evaluations of the same interpolation may differ: each side rounds
+    every weight (3 factors) and the sum of 8 weighted terms, about 12 roundings of ``sum_c w_c |t_c|`` per side."""
+    return 24 * torch.finfo(torch.float32).eps * hashgrid_forward_torch(x, table.abs().float(), resolutions)
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+@pytest.mark.parametrize("features", [2, 3])  # feature pairs as 32-bit words (Warp) / one float16 at a time
+def test_float16_table_forward_matches_the_float32_reference_within_its_rounding(device, framework, features):
+    x = _points(4000, seed=5, spread=0.1)
+    table = _table(LEVELS, 3001, features, seed=6) * 0.5
+    table[0, :40] *= 1e-4  # some entries below float16's smallest normal, 2^-14
+    resolutions = level_resolutions(LEVELS, BASE, MAX)
+    half = table.half()
+    out = hashgrid_forward(x, half, resolutions, framework=framework)
+    assert out.dtype == torch.float32 and out.shape == (4000, LEVELS * features)
+
+    # The kernel interpolates the float16 values in float32: the reference of the rounded table, to float32 rounding.
+    rounded = half.float()
+    _assert_within(out, hashgrid_forward_torch(x, rounded, resolutions),
+                   _float32_interpolation_bound(x, rounded, resolutions))
+    # Against the float32 table: each stored value moved by at most 2^-11 relative (or 2^-25 absolute below 2^-14),
+    # and the trilinear weights are non-negative and sum to 1, so the features move by at most the weighted sum.
+    assert (rounded - table).abs().le(torch.maximum(_HALF_ULP * table.abs(), torch.tensor(_HALF_SUBNORMAL_STEP,
+            device=table.device))).all(), "float16 rounding exceeds half an ulp"
+    rounding = hashgrid_forward_torch(x, _HALF_ULP * table.abs() + _HALF_SUBNORMAL_STEP, resolutions)
+    expected = hashgrid_forward_torch(x, table, resolutions)
+    _assert_within(out, expected, rounding + _float32_interpolation_bound(x, table, resolutions))
+    assert (out - expected).abs().max() > 0, "the float16 table was read as float16"
+
+
+@pytest.mark.parametrize("framework", FRAMEWORKS)
+def test_float16_encoding_trains_a_float32_master_table(device, framework):
+    """With ``table_dtype="float16"`` the kernels read a float16 copy, and the float32 parameter gets the very
+    gradient the float32 encoding gives it (the backward never reads the table)."""
+    config = HashGridConfig(levels=LEVELS, features=2, log2_table_size=11, base_resolution=BASE, max_resolution=MAX,
+                            table_dtype="float16", init_scale=0.5)
+    encoding = HashGridEncoding(config, framework=framework).to(backend.torch_device())
+    assert encoding.table.dtype == torch.float32 and encoding.read_table().dtype == torch.float16
+    x = _points(3000, seed=7)
+    grad_out = torch.randn(3000, config.output_dim, generator=torch.Generator().manual_seed(8)).to(x.device)
+    out = encoding(x)
+    out.backward(grad_out)
+
+    rounded = encoding.table.detach().half().float()
+    _assert_within(out.detach(), hashgrid_forward_torch(x, rounded, encoding.resolutions),
+                   _float32_interpolation_bound(x, rounded, encoding.resolutions))
+    grad = encoding.table.grad
+    assert grad.dtype == torch.float32 and grad.shape == encoding.table.shape
+    expected = hashgrid_backward_torch(x, grad_out, encoding.resolutions, config.table_size)
+    assert expected.abs().max() > 1e-3
+    _assert_within(grad, expected, _summation_bound(x, grad_out, encoding.resolutions, config.table_size))
+
+
+def test_float16_copy_is_made_again_exactly_when_the_table_changes(device):
+    """The copy's own version counter counts its refreshes: one per change of the master table (an optimiser step,
+    ``load_state_dict``; a fused optimiser step or a write through ``.data``, which torch does not count, once announced
+    by ``mark_table_changed``), none between changes."""
+    config = HashGridConfig(levels=2, features=2, log2_table_size=8, base_resolution=2, max_resolution=8,
+                            table_dtype="float16")
+    encoding = HashGridEncoding(config).to(backend.torch_device())
+    x = _points(64, seed=9)
+    copy = encoding.read_table()
+    made = copy._version
+
+    def refreshes() -> int:
+        nonlocal made
+        current = encoding.read_table()
+        assert current is copy, "the copy is refreshed in place, not reallocated"
+        assert torch.equal(current, encoding.table.detach().half()), "the copy holds the master table, rounded"
+        count, made = current._version - made, current._version
+        return count
+
+    encoding(x).sum().backward()
+    assert refreshes() == 0, "encoding and differentiating leave the table"
+    optimizer = torch.optim.Adam(encoding.parameters(), lr=1e-2)
+    optimizer.step()
+    assert refreshes() == 1 and refreshes() == 0
+    encoding(x)
+    assert refreshes() == 0
+    encoding.load_state_dict({"table": torch.full_like(encoding.table, 0.25), "resolutions": encoding.resolutions})
+    assert refreshes() == 1
+    encoding.table.data.mul_(2.0)  # unseen by the version counter ...
+    encoding.mark_table_changed()  # ... so announced
+    assert refreshes() == 1 and float(copy.max()) == 0.5
+    optimizer.step()
+    encoding.mark_table_changed()  # a change seen twice is copied once
+    assert refreshes() == 1
+    fused = torch.optim.Adam(encoding.parameters(), lr=1e-2, fused=True)
+    fused.step()  # the version counter does not move ...
+    stale = encoding.read_table()
+    assert stale._version == made and not torch.equal(stale, encoding.table.detach().half()), "fused steps go unseen"
+    encoding.mark_table_changed()  # ... so the step is announced, as NGPField.mark_weights_changed does in training
+    assert refreshes() == 1
+
+
+def test_table_dtype_is_validated_and_float32_by_default():
+    assert HashGridConfig().table_dtype == "float32" and set(TABLE_DTYPES) == {"float32", "float16"}
+    with pytest.raises(ValueError, match=r"table_dtype must be one of 'float32', 'float16', got 'bfloat16'"):
+        HashGridConfig(table_dtype="bfloat16")

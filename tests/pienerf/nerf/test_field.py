@@ -569,3 +569,31 @@ def test_fused_mlps_keep_the_keys_and_agree_with_torch(device):
         NGPConfig(mlp="fused", color_hidden=24)
     with pytest.raises(ValueError, match="mlp must be one of"):
         NGPConfig(mlp="cublas")
+
+
+def test_a_float16_table_field_trains_its_float32_master_and_reads_a_fresh_copy(device, sphere_scene):
+    """With ``table_dtype="float16"`` the optimiser steps the float32 table (its Adam state float32 too), each step's
+    forward reads the float16 copy of the updated table, and σ by the kernels and by the differentiable torch encoding
+    (∇σ's) is one field: both read that copy."""
+    config = dataclasses.replace(SMALL, hashgrid=dataclasses.replace(SMALL.hashgrid, table_dtype="float16"))
+    torch.manual_seed(0)
+    field = NGPField(config, AABB).to(backend.torch_device())
+    data = load_nerf_dataset(sphere_scene, "train", downscale=2, background=(0.0, 0.0, 0.0), max_views=2)
+    trainer = Trainer(field, data, _train_config(batch_rays=128))
+    for _ in range(2):
+        before = field.encoding.table.detach().clone()
+        trainer.train_step()
+        assert not torch.equal(field.encoding.table, before), "the step moved the float32 master table"
+        assert torch.equal(field.encoding.read_table(), field.encoding.table.detach().half())
+    assert field.encoding.table.dtype == torch.float32
+    state = trainer.optimizer.state[field.encoding.table]
+    assert state["exp_avg"].dtype == state["exp_avg_sq"].dtype == torch.float32
+
+    x = (torch.rand(500, 3, generator=torch.Generator().manual_seed(3)) * 1.6 - 0.8).to(backend.torch_device())
+    with torch.no_grad():
+        sigma = field.density(x)
+        sigma_torch = field.density(x, differentiable_in_x=True)
+    # One field up to float32 rounding of the encoding (a relative 24 eps of the features, module tests) passed through
+    # exp(h_0): the same tolerance as the float32 field's test above.
+    torch.testing.assert_close(sigma, sigma_torch, rtol=1e-4, atol=1e-5)
+    assert NerfDensity(field).density_grad(x).isfinite().all()

@@ -2,12 +2,14 @@
 
 import copy
 import random
+from dataclasses import replace
 
 import pytest
 import torch
 
 from kernels.hashgrid import HashGridConfig
 from pienerf.nerf.field import NGPConfig, NGPField, OccupancyGrid
+from pienerf.nerf.fitting import NerfFit
 from pienerf.nerf.training import TrainConfig, load_checkpoint, save_checkpoint
 
 TINY = NGPConfig(
@@ -129,3 +131,27 @@ def test_fuzzed_checkpoints_load_or_fail_clearly(device, checkpoint):
             assert str(checkpoint) in str(error), f"case {case}: {error}"
             refused += 1
     assert refused > 30
+
+
+def test_the_table_dtype_round_trips_through_configs_and_checkpoints(device, tmp_path, checkpoint):
+    half = NGPConfig(**{**TINY.__dict__, "hashgrid": replace(TINY.hashgrid, table_dtype="float16")})
+    assert NGPConfig.from_dict(half.to_dict()) == half and half.to_dict()["hashgrid"]["table_dtype"] == "float16"
+    torch.manual_seed(0)
+    field = NGPField(half, AABB)
+    path = save_checkpoint(tmp_path / "half.pt", field, OccupancyGrid.for_field(field), 3)
+    loaded = load_checkpoint(path)
+    assert loaded.field.config == half and loaded.field.encoding.table.dtype == torch.float32
+    assert torch.equal(loaded.field.encoding.table.cpu(), field.encoding.table.detach())
+    assert torch.equal(loaded.field.encoding.read_table().cpu(), field.encoding.table.detach().half())
+
+    # A checkpoint written before the setting existed has no table_dtype: it loads with the float32 table.
+    payload = torch.load(checkpoint, weights_only=True)
+    del payload["config"]["hashgrid"]["table_dtype"]
+    torch.save(payload, checkpoint)
+    assert load_checkpoint(checkpoint).field.config.hashgrid.table_dtype == "float32"
+
+    # A fit's digest names its NeRF in caches and assets: a float16 table is another NeRF; a float32 one digests as
+    # before the setting existed (the shipped NeRF's name, tests/pienerf/viewer, still matches).
+    fit = NerfFit()
+    half_fit = replace(fit, ngp=replace(fit.ngp, hashgrid=replace(fit.ngp.hashgrid, table_dtype="float16")))
+    assert half_fit.digest(scene="plant") != fit.digest(scene="plant")
