@@ -440,7 +440,8 @@ class FusedMLP(torch.nn.Sequential):
     A ``Sequential`` of the very layers it is given, so it holds the float32 master weights under the same
     state-dict keys (``"0.weight"``, ``"2.weight"`` ...) and an optimiser over them is unchanged. Its forward packs
     float16 copies of the weights (float32 on the CPU) once per change of the weights (the parameters' version
-    counters, which optimiser steps and ``load_state_dict`` bump) and runs :class:`FusedMLPFunction`.
+    counters, which optimiser steps and ``load_state_dict`` bump; a change they do not count, a fused optimiser step
+    or a write through ``.data``, is announced by :meth:`mark_weights_changed`) and runs :class:`FusedMLPFunction`.
 
     Args:
         layers: the layers, e.g. an existing ``torch.nn.Sequential`` (shared, not copied).
@@ -459,6 +460,12 @@ class FusedMLP(torch.nn.Sequential):
         self.executor = executor
         self.sigmoid = isinstance(layers[-1], torch.nn.Sigmoid)
         self._packed: tuple[tuple, PackedMLP] | None = None
+        self._generation = 0  # changes announced by mark_weights_changed
+
+    def mark_weights_changed(self) -> None:
+        """Announce a change of the weights their version counters do not see (torch's fused Adam steps without
+        bumping them, as a write through ``.data`` does): the packed copy is made again at the next forward."""
+        self._generation += 1
 
     def weights(self) -> list[torch.Tensor]:
         """The ``Linear`` layers' ``[out, in]`` weights, first to last."""
@@ -467,7 +474,7 @@ class FusedMLP(torch.nn.Sequential):
     def packed(self) -> PackedMLP:
         """The weights laid out for the kernels in :func:`kernel_dtype` of their device, made again after any change."""
         weights = self.weights()
-        key = tuple((w.data_ptr(), w._version, w.device) for w in weights)
+        key = (self._generation, *((w.data_ptr(), w._version, w.device) for w in weights))
         if self._packed is None or self._packed[0] != key:
             self._packed = (key, pack_mlp([w.detach() for w in weights], self.sigmoid))
         return self._packed[1]

@@ -249,9 +249,13 @@ class NGPField(torch.nn.Module):
     def mark_weights_changed(self) -> None:
         """Announce that the weights changed in place (an optimiser step, a copy into the parameters): bumps
         :attr:`weights_version`, so that copies made from the old weights are made again (the encoding's float16
-        table among them, :meth:`~kernels.hashgrid.HashGridEncoding.mark_table_changed`)."""
+        table among them, :meth:`~kernels.hashgrid.HashGridEncoding.mark_table_changed`, and the fused MLPs' packed
+        weights, :meth:`~kernels.fused_mlp.FusedMLP.mark_weights_changed`)."""
         self.weights_version += 1
         self.encoding.mark_table_changed()
+        for mlp in (self.density_mlp, self.color_mlp):
+            if isinstance(mlp, FusedMLP):
+                mlp.mark_weights_changed()
 
     def to_unit_cube(self, x: torch.Tensor) -> torch.Tensor:
         """World points ``[N, 3]`` (metres) to the encoding's unit cube, ``(x − lo) / (hi − lo)``."""

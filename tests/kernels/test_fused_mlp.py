@@ -144,6 +144,12 @@ def test_module_keeps_keys_follows_weight_changes_and_matches_torch_executor(dev
     ey, _, _ = _error_bounds(x, fused.weights(), True, zero, kernel_dtype(device))
     _assert_within("y after the step", second, y_ref, ey)
     assert torch.allclose(eager.double().cpu(), y_ref.cpu(), rtol=0, atol=float(ey.max()) + 1e-6)
+    kernels = FusedMLP(mlp, executor="warp")  # the packed copy is the kernels' (on the CPU too)
+    before = kernels(x).detach()
+    kernels[0].weight.data.mul_(2.0)  # unseen by the version counter (as a fused Adam step) ...
+    assert torch.equal(kernels(x).detach(), before), "the unannounced change went unseen"
+    kernels.mark_weights_changed()  # ... so announced, as NGPField.mark_weights_changed does after every step
+    assert not torch.equal(kernels(x).detach(), before)
 
 
 def test_zero_rows(device):
