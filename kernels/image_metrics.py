@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["gaussian_window", "psnr", "ssim"]
+__all__ = ["gaussian_window", "psnr", "ssim", "ssim_map"]
 
 
 def psnr(prediction: torch.Tensor, target: torch.Tensor, max_value: float = 1.0) -> torch.Tensor:
@@ -61,6 +61,26 @@ def ssim(
     Returns:
         Scalar tensor in ``[-1, 1]``: the SSIM map averaged over valid positions, channels and images.
     """
+    values = ssim_map(prediction, target, max_value, window_size, sigma, k1, k2, compute_dtype)
+    return values.mean().to(prediction.dtype)
+
+
+def ssim_map(
+    prediction: torch.Tensor,
+    target: torch.Tensor,
+    max_value: float = 1.0,
+    window_size: int = 11,
+    sigma: float = 1.5,
+    k1: float = 0.01,
+    k2: float = 0.03,
+    compute_dtype: torch.dtype = torch.float64,
+) -> torch.Tensor:
+    """The SSIM of every valid window position (:func:`ssim`'s arguments), for losses weighted per pixel.
+
+    Returns:
+        ``[N, H − w + 1, W − w + 1, C]`` (``N = 1`` for one ``[H, W, C]`` image) in ``compute_dtype``: position
+        ``(i, j)`` is the window centred on pixel ``(i + w // 2, j + w // 2)``, ``w = window_size``.
+    """
     _check_pair(prediction, target)
     if prediction.dim() not in (3, 4):
         raise ValueError(f"ssim expects [H, W, C] or [N, H, W, C] images, got shape {tuple(prediction.shape)}")
@@ -83,8 +103,8 @@ def ssim(
     var_y = blur(y * y) - mu_y**2
     cov = blur(x * y) - mu_x * mu_y
     c1, c2 = (k1 * max_value) ** 2, (k2 * max_value) ** 2
-    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
-    return ssim_map.mean().to(prediction.dtype)
+    values = ((2 * mu_x * mu_y + c1) * (2 * cov + c2)) / ((mu_x**2 + mu_y**2 + c1) * (var_x + var_y + c2))
+    return values.permute(0, 2, 3, 1)
 
 
 def _to_nchw(images: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:

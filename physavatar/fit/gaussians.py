@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 
 from kernels.gaussian_splat import rasterize_gaussians
-from kernels.image_metrics import ssim
+from kernels.image_metrics import ssim, ssim_map
 
 __all__ = [
     "GaussianAppearance",
@@ -322,11 +322,29 @@ def render_mesh_gaussians(
     )
 
 
-def photometric_loss(image: torch.Tensor, target: torch.Tensor, weight_l1: float = 0.8) -> torch.Tensor:
+def photometric_loss(
+    image: torch.Tensor, target: torch.Tensor, weight_l1: float = 0.8, weights: torch.Tensor | None = None
+) -> torch.Tensor:
     """Eq. 1: ``λ ‖I − Î‖₁ + (1 − λ)(1 − SSIM(I, Î))`` over a batch of ``[C, H, W, 3]`` images (mean L1).
 
     The paper writes ``(1 − λ)·SSIM``; as in 3DGS and Dynamic 3D Gaussians, whose loss it cites, the term
     minimised is the dissimilarity ``1 − SSIM``. ``λ = 0.8`` as there.
+
+    With ``weights`` ``[C, H, W]`` (e.g. a garment mask), both terms are weighted means over the pixels: the L1 of
+    each pixel, and the SSIM of the 11×11 window centred on it (pixels within 5 of the border, where no window
+    fits, weigh nothing in the SSIM term). Pixels of zero weight farther than 5 px from any weighted one do not
+    change the loss.
     """
-    l1 = (image - target).abs().mean()
-    return weight_l1 * l1 + (1.0 - weight_l1) * (1.0 - ssim(image, target, compute_dtype=torch.float32))
+    if weights is None:
+        l1 = (image - target).abs().mean()
+        return weight_l1 * l1 + (1.0 - weight_l1) * (1.0 - ssim(image, target, compute_dtype=torch.float32))
+    if weights.shape != image.shape[:-1]:
+        raise ValueError(f"weights {tuple(weights.shape)} must be one per pixel of the images {tuple(image.shape)}")
+    weights = weights.to(image.dtype)
+    l1 = ((image - target).abs().mean(-1) * weights).sum() / weights.sum().clamp_min(1e-12)
+    similarity = ssim_map(image, target, compute_dtype=torch.float32).mean(-1)
+    pad_y = (image.shape[-3] - similarity.shape[-2]) // 2
+    pad_x = (image.shape[-2] - similarity.shape[-1]) // 2
+    inner = weights[:, pad_y : pad_y + similarity.shape[-2], pad_x : pad_x + similarity.shape[-1]]
+    ssim_term = (similarity.to(image.dtype) * inner).sum() / inner.sum().clamp_min(1e-12)
+    return weight_l1 * l1 + (1.0 - weight_l1) * (1.0 - ssim_term)
