@@ -86,7 +86,7 @@ _SCRUB_FRAMES_PER_STEP = 2.0  # a scrubbed body travels to its new pose this fas
 _SPEED_RANGE = (0.0, 4.0)
 _BVH_SECONDS = 20.0  # s of a BVH file played (its frames are skinned up front: 20 s of the mannequin is 90 MB)
 _BVH_BLEND = 25  # frames of the eases into and out of a BVH clip (1 s)
-_INTERACTIVE_NEWTON_ITERATIONS = 6  # see AvatarConfig.newton_iterations
+_INTERACTIVE_NEWTON_ITERATIONS = {"cpu": 6, "cuda": 4}  # by device; see AvatarConfig.newton_iterations
 _CPU_CANDIDATE_MARGIN = 0.01
 """m, the contact candidates' reach beyond each vertex's predicted path on the CPU (:attr:`ClothConfig.
 candidate_margin`; the solver's 2 mm was the fastest for the converged walk): a dragged garment leaves a 2 mm reach
@@ -165,13 +165,16 @@ class AvatarConfig:
         motion: the motion at start: one of :data:`AVATAR_MOTIONS` or the path of a ``.bvh`` file (retargeted onto
             the mannequin, eased in from the rest pose and back to its first pose so that it loops).
         fabric: the fabric at start (:data:`FABRIC_PRESETS`).
-        newton_iterations: most Newton iterations a frame; ``None``: 6, an interactive cap, as the PIE-NeRF bodies'
-            one iteration. With the garment dragged across the walking legs a converged frame took 22 iterations on
-            average on the CPU, a capped one 6, a quarter of the time; walking alone, skirt7271 takes 5 a frame
-            (``cloth_step``), so the cap binds while the user drags. Every iterate is intersection-free, so a capped
-            step keeps the contact guarantees; it may end with the body short of its pose, and then the body is shown
-            where the garment's collider got to and the next step sweeps on from there
-            (:attr:`AvatarSimulation.body_lag`). The solver's own 50 converges every frame.
+        newton_iterations: most Newton iterations a frame; ``None``: an interactive cap, as the PIE-NeRF bodies'
+            one iteration: 6 on the CPU, 4 on CUDA. With the garment dragged across the walking legs a converged
+            frame took 22 iterations on average on the CPU, a capped one 6, a quarter of the time; walking alone,
+            skirt7271 takes 5 a frame (``cloth_step``), so the cap binds while the user drags. Every iterate is
+            intersection-free, so a capped step keeps the contact guarantees; it may end with the body short of its
+            pose, and then the body is shown where the garment's collider got to and the next step sweeps on from
+            there (:attr:`AvatarSimulation.body_lag`). The solver's own 50 converges every frame. On an H200,
+            skirt7271 dragged on the walk (the ``viewer_frame_avatar`` frame, 40 frames after 10): a cap of 6 took
+            49.0 ms a frame (median; 5.8 iterations), 5 took 42.9 ms, 4 took 38.4 ms (26 frames/s), with the body
+            at most 2.9 mm behind its pose and no vertex inside it; the linear solves (cuDSS) are half the frame.
         collider_reach: the garment collides with the body's triangles that have a vertex within this distance
             of the garment at rest, m; ``None``: 0.25 m on the CPU (the hips, thighs and hands that a skirt meets:
             the candidate search, most of a frame there, sees 6k of the body's 15k triangles), the whole body on
@@ -411,7 +414,7 @@ class AvatarSimulation:
         self.motion = CAPTURE_MOTION if config.capture is not None else config.motion
         self._clip_of(self.motion)
         self.solver_device = device
-        self.newton_iterations = config.newton_iterations or _INTERACTIVE_NEWTON_ITERATIONS
+        self.newton_iterations = config.newton_iterations or _INTERACTIVE_NEWTON_ITERATIONS[device.type]
         self.fabric_name = config.fabric
         self.fabric = FABRIC_PRESETS[config.fabric]
         self._progress(progress, "building the solver", 0.7)
