@@ -42,6 +42,7 @@ import torch
 import warp as wp
 
 from kernels import backend
+from kernels.mlp_chain import check_chain, linear_layers
 
 __all__ = ["SimtMLPWeights", "pack_simt_mlp", "simt_mlp_forward", "simt_mlp_weights_of"]
 
@@ -105,17 +106,7 @@ def pack_simt_mlp(weights: list[torch.Tensor], sigmoid: bool = False, dtype: tor
     """
     if dtype not in _WARP_DTYPES:
         raise ValueError(f"weights are stored as float16 or float32, got {dtype}; pass dtype=torch.float32")
-    if len(weights) < 2:
-        raise ValueError(f"a SIMT MLP needs at least 2 linear layers (one hidden layer), got {len(weights)}")
-    for i, w in enumerate(weights):
-        if not isinstance(w, torch.Tensor) or w.dim() != 2 or not w.is_floating_point():
-            raise ValueError(f"weight {i} must be a floating-point [out, in] matrix, got {getattr(w, 'shape', w)}")
-        if i > 0 and w.shape[1] != weights[i - 1].shape[0]:
-            raise ValueError(f"weight {i} takes {w.shape[1]} inputs but layer {i - 1} gives {weights[i - 1].shape[0]}")
-    widths = [w.shape[0] for w in weights[:-1]]
-    if len(set(widths)) != 1:
-        raise ValueError(f"every hidden layer must have the same width, got {widths}")
-    width, device = widths[0], weights[0].device
+    width, device = check_chain(weights, "a SIMT MLP"), weights[0].device
     middle = [w.t() for w in weights[1:-1]] or [torch.zeros(width, width, device=device)]
     return SimtMLPWeights(
         w_first=weights[0].t().to(dtype).contiguous(),
@@ -129,15 +120,8 @@ def pack_simt_mlp(weights: list[torch.Tensor], sigmoid: bool = False, dtype: tor
 def simt_mlp_weights_of(mlp: torch.nn.Sequential, dtype: torch.dtype = torch.float32) -> SimtMLPWeights:
     """:func:`pack_simt_mlp` of a ``Sequential`` of bias-free ``Linear`` layers, ``ReLU`` between them and an optional
     last ``Sigmoid``; ``ValueError`` naming the layers for anything else."""
-    kinds = [type(layer) for layer in mlp]
-    linear = [layer for layer in mlp if isinstance(layer, torch.nn.Linear)]
-    expected = [torch.nn.Linear] + [torch.nn.ReLU, torch.nn.Linear] * (len(linear) - 1)
-    if len(linear) < 2 or kinds not in (expected, expected + [torch.nn.Sigmoid]):
-        names = [k.__name__ for k in kinds]
-        raise ValueError(f"a SIMT MLP is Linear, (ReLU, Linear) at least once, then maybe Sigmoid; got {names}")
-    if any(layer.bias is not None for layer in linear):
-        raise ValueError("a SIMT MLP's Linear layers are bias-free (bias=False)")
-    sigmoid = kinds[-1] is torch.nn.Sigmoid
+    linear = linear_layers(list(mlp), "a SIMT MLP")
+    sigmoid = isinstance(mlp[-1], torch.nn.Sigmoid)
     return pack_simt_mlp([layer.weight.detach() for layer in linear], sigmoid, dtype)
 
 

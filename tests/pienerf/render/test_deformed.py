@@ -358,17 +358,22 @@ def test_a_directions_key_names_the_rays_whose_encoding_is_reused(teapot, monkey
     assert len(calls) == 3, "no key after a key must encode again"
 
 
+def _random_teapot_field(seed: int):
+    """A randomly initialised NGP field over the teapot's box and its fully occupied grid (every sample queried)."""
+    lo, hi = scene_mesh("teapot").bounds
+    aabb = torch.stack([lo - 0.05, hi + 0.05])
+    torch.manual_seed(seed)
+    field = NGPField(NGPConfig(), aabb).to(backend.torch_device())
+    return field, OccupancyGrid.for_field(field)
+
+
 def test_float16_copies_follow_the_fields_weights(teapot):
     """Under half precision the renderer queries float16 copies of the field's MLPs; weights loaded into the field
     afterwards are copied again, so the next image is that of a renderer built after the change."""
     model, _, _, q = teapot
     if backend.torch_device().type != "cuda":
         pytest.skip("the float16 copies of the MLPs are made on CUDA only")
-    lo, hi = scene_mesh("teapot").bounds
-    aabb = torch.stack([lo - 0.05, hi + 0.05])
-    torch.manual_seed(0)
-    field = NGPField(NGPConfig(), aabb).to(backend.torch_device())
-    grid = OccupancyGrid.for_field(field)  # fully occupied: every sample is queried
+    field, grid = _random_teapot_field(seed=0)
     cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 16, fov=0.9)
     renderer = DeformedRenderer(field, grid, model, half_precision=True)
     with torch.no_grad():
@@ -388,11 +393,7 @@ def test_simt_mlps_render_the_torch_image(teapot):
     (both float32; 1e-5 on colours in [0, 1]), and on CUDA to float16's (torch's float16 products against the kernel's
     float32 sums of float32 weights, both rounding outputs to float16: 2e-3, a few float16 spacings of 1)."""
     model, _, _, q = teapot
-    lo, hi = scene_mesh("teapot").bounds
-    aabb = torch.stack([lo - 0.05, hi + 0.05])
-    torch.manual_seed(1)
-    field = NGPField(NGPConfig(), aabb).to(backend.torch_device())
-    grid = OccupancyGrid.for_field(field)  # fully occupied: every sample is queried
+    field, grid = _random_teapot_field(seed=1)
     cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 12, fov=0.9)
     images = {}
     for executor in ("torch", "simt"):
