@@ -105,6 +105,41 @@ def _inside(mesh: wp.uint64, points: wp.array(dtype=wp.vec3), inside_out: wp.arr
     inside_out[i] = wp.where(query.result and query.sign < 0.0, 1, 0)
 
 
+# Solid angles a thread of :func:`_solid_angle_sums` adds up: one chunk of faces for one point.
+_FACES_PER_THREAD = 256
+# Up to this many point–face pairs a CUDA device sums every face's solid angle (:meth:`MeshBVH.inside`): about
+# 0.3 ms on an H100-class GPU, where the tree's traversal, one thread a point, waits on memory for milliseconds.
+_DIRECT_PAIRS = 1 << 28
+
+
+@wp.kernel
+def _solid_angle_sums(
+    points: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.vec3),
+    faces: wp.array(dtype=wp.int32, ndim=2),
+    chunk: int,
+    sums_out: wp.array(dtype=float, ndim=2),
+):
+    # consecutive threads take consecutive points and the same faces, which a warp then reads once
+    c, i = wp.tid()
+    p = points[i]
+    start = c * chunk
+    end = wp.min(start + chunk, faces.shape[0])
+    total = wp.float32(0.0)  # a dynamic variable: the loop adds to it
+    for f in range(start, end):
+        a = vertices[faces[f, 0]] - p
+        b = vertices[faces[f, 1]] - p
+        d = vertices[faces[f, 2]] - p
+        la = wp.length(a)
+        lb = wp.length(b)
+        ld = wp.length(d)
+        # tan(Ω/2) of the triangle seen from p (Van Oosterom and Strackee 1983)
+        num = wp.dot(a, wp.cross(b, d))
+        den = la * lb * ld + wp.dot(a, b) * ld + wp.dot(b, d) * la + wp.dot(d, a) * lb
+        total += wp.atan2(num, den)
+    sums_out[c, i] = total
+
+
 @wp.kernel
 def _cast_rays(
     mesh: wp.uint64,
@@ -239,31 +274,59 @@ class MeshBVH:
             )
         return ClosestPoints(distance, face, bary)
 
-    def inside(self, points: torch.Tensor) -> torch.Tensor:
+    def inside(self, points: torch.Tensor, method: str = "auto") -> torch.Tensor:
         """``[P]`` bool: which of ``points [P, 3]`` (metres) lie inside the closed, outward-oriented mesh.
 
-        A point is inside where the mesh's generalised winding number exceeds ½, evaluated through the BVH by
-        Warp's fast winding number (far clusters of triangles summed as dipoles), so a query costs about
-        ``O(log F)`` instead of the ``O(F)`` of the exact sum of solid angles.
+        A point is inside where the mesh's generalised winding number exceeds ½ (Jacobson et al. 2013), which holds
+        for self-intersecting and slightly open meshes too. ``method`` says how it is evaluated:
+
+        * ``"tree"``: Warp's fast winding number through the BVH (Barill et al. 2018; far clusters of triangles
+          summed as dipoles), about ``O(log F)`` a point;
+        * ``"direct"``: the exact sum of every face's solid angle, ``O(F)`` a point spread over threads that each
+          take :data:`_FACES_PER_THREAD` faces;
+        * ``"auto"``: direct on CUDA up to :data:`_DIRECT_PAIRS` point–face pairs (there a point's traversal of
+          the tree, one thread each, is latency-bound: 3 ms for a garment's 3.7k vertices against a 15k-face body
+          on an H200, where the direct sum takes a tenth of that), the tree otherwise.
 
         Raises:
-            ValueError: the BVH was built without ``winding_numbers=True``.
+            ValueError: the BVH was built without ``winding_numbers=True``, or ``method`` is unknown.
         """
         if not self.winding_numbers:
             raise ValueError("inside() needs the winding-number data: build the MeshBVH with winding_numbers=True")
+        if method not in ("auto", "tree", "direct"):
+            raise ValueError(f"method must be 'auto', 'tree' or 'direct', got {method!r}")
         _check_vertices(points, "points")
-        flags = torch.zeros(points.shape[0], dtype=torch.int32, device=points.device)
-        if points.shape[0]:
+        count = points.shape[0]
+        if count == 0:
+            return torch.zeros(0, dtype=torch.bool, device=points.device)
+        points = points.detach().to(torch.float32).contiguous()
+        faces = self._faces.shape[0]
+        if method == "auto":
+            method = "direct" if points.device.type == "cuda" and count * faces <= _DIRECT_PAIRS else "tree"
+        if method == "direct":
+            chunks = -(-faces // _FACES_PER_THREAD)
+            sums = torch.empty(chunks, count, dtype=torch.float32, device=points.device)
             wp.launch(
-                _inside,
-                dim=points.shape[0],
+                _solid_angle_sums,
+                dim=(chunks, count),
                 inputs=[
-                    self.mesh.id,
-                    backend.to_warp(points.detach().to(torch.float32).contiguous(), dtype=wp.vec3),
-                    backend.to_warp(flags),
+                    backend.to_warp(points, dtype=wp.vec3),
+                    backend.to_warp(self._points, dtype=wp.vec3),
+                    backend.to_warp(self._faces),
+                    _FACES_PER_THREAD,
+                    backend.to_warp(sums),
                 ],
                 device=backend.warp_device(),
             )
+            # Σ atan2 = Σ Ω/2, so the winding number Σ Ω / 4π exceeds ½ where the sum exceeds π
+            return sums.sum(0) > math.pi
+        flags = torch.zeros(count, dtype=torch.int32, device=points.device)
+        wp.launch(
+            _inside,
+            dim=count,
+            inputs=[self.mesh.id, backend.to_warp(points, dtype=wp.vec3), backend.to_warp(flags)],
+            device=backend.warp_device(),
+        )
         return flags.bool()
 
 

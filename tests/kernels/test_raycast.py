@@ -68,18 +68,27 @@ def test_closest_points_match_brute_force(device):
     assert bool((near.face.cpu()[far] == -1).all())
 
 
-def test_inside_matches_the_exact_winding_number(device):
-    vertices, faces = _bumpy_sphere(1)
+@pytest.mark.parametrize("method", ["auto", "tree", "direct"])
+def test_inside_matches_the_exact_winding_number(device, method):
+    vertices, faces = _bumpy_sphere(1)  # 320 faces: two chunks of the direct sum, the second one partial
     generator = torch.Generator().manual_seed(5)
     points = (torch.rand(800, 3, generator=generator) * 2.0 - 1.0) * 1.5
     exact = reference.winding_number(vertices, faces, points)
     clear = (exact - 0.5).abs() > 0.05  # leave out points on the surface itself, where the sign is a tie
     bvh = MeshBVH(*_on_device(vertices, faces), winding_numbers=True)
-    inside = bvh.inside(points.to(backend.torch_device())).cpu()
+    inside = bvh.inside(points.to(backend.torch_device()), method=method).cpu()
     assert 100 < int((exact > 0.5).sum()) < 700
     assert torch.equal(inside[clear], (exact > 0.5)[clear])
+    assert bvh.inside(points[:0].to(backend.torch_device()), method=method).shape == (0,)
     with pytest.raises(ValueError, match="winding_numbers=True"):
-        MeshBVH(*_on_device(vertices, faces)).inside(points.to(backend.torch_device()))
+        MeshBVH(*_on_device(vertices, faces)).inside(points.to(backend.torch_device()), method=method)
+
+
+def test_inside_names_an_unknown_method(device):
+    vertices, faces = _bumpy_sphere(1)
+    bvh = MeshBVH(*_on_device(vertices, faces), winding_numbers=True)
+    with pytest.raises(ValueError, match="'auto', 'tree' or 'direct'"):
+        bvh.inside(vertices.to(backend.torch_device()), method="exact")
 
 
 def test_max_distance_turns_far_hits_into_misses(device):
