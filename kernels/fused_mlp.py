@@ -40,7 +40,6 @@ import torch
 import warp as wp
 
 from kernels import backend
-from kernels.mlp_chain import check_chain, linear_layers
 
 __all__ = [
     "EXECUTORS",
@@ -111,7 +110,16 @@ class PackedMLP:
 
 
 def _check_weights(weights: list[torch.Tensor]) -> None:
-    hidden = check_chain(weights, "a fused MLP")
+    if len(weights) < 2:
+        raise ValueError(f"a fused MLP needs at least 2 linear layers (one hidden layer), got {len(weights)}")
+    hidden = weights[0].shape[0]
+    for i, w in enumerate(weights):
+        if not isinstance(w, torch.Tensor) or w.dim() != 2 or not w.is_floating_point():
+            raise ValueError(f"weight {i} must be a floating-point [out, in] matrix, got {getattr(w, 'shape', w)}")
+        if i > 0 and w.shape[1] != weights[i - 1].shape[0]:
+            raise ValueError(f"weight {i} takes {w.shape[1]} inputs but layer {i - 1} gives {weights[i - 1].shape[0]}")
+        if 0 < i + 1 < len(weights) and w.shape[0] != hidden:
+            raise ValueError(f"every hidden layer must have the same width, got {[w.shape[0] for w in weights[:-1]]}")
     if hidden % _ALIGN:
         raise ValueError(f"the hidden width must be a multiple of {_ALIGN}, got {hidden}; pick another width")
 
@@ -413,6 +421,19 @@ class FusedMLPFunction(torch.autograd.Function):
         return (grad_x.to(x.dtype) if ctx.needs_input_grad[0] else None), None, *weight_grads
 
 
+def _linear_layers(layers: list[torch.nn.Module]) -> list[torch.nn.Linear]:
+    """The ``Linear`` layers of ``Linear, [ReLU, Linear] ..., [Sigmoid]``, bias-free; else ``ValueError``."""
+    kinds = [type(layer) for layer in layers]
+    linear = [layer for layer in layers if isinstance(layer, torch.nn.Linear)]
+    expected = [torch.nn.Linear] + [torch.nn.ReLU, torch.nn.Linear] * (len(linear) - 1)
+    if len(linear) < 2 or kinds not in (expected, expected + [torch.nn.Sigmoid]):
+        names = [k.__name__ for k in kinds]
+        raise ValueError(f"a fused MLP is Linear, (ReLU, Linear) at least once, then maybe Sigmoid; got {names}")
+    if any(layer.bias is not None for layer in linear):
+        raise ValueError("a fused MLP's Linear layers are bias-free (bias=False)")
+    return linear
+
+
 class FusedMLP(torch.nn.Sequential):
     """A bias-free ReLU MLP (``Linear, [ReLU, Linear] ..., [Sigmoid]``) evaluated by the fused kernels.
 
@@ -431,7 +452,7 @@ class FusedMLP(torch.nn.Sequential):
 
     def __init__(self, layers: torch.nn.Sequential | list[torch.nn.Module], executor: str = "auto"):
         layers = list(layers)
-        linear = linear_layers(layers, "a fused MLP")
+        linear = _linear_layers(layers)
         _check_weights([layer.weight for layer in linear])
         if executor not in EXECUTORS:
             raise ValueError(f"executor must be one of {EXECUTORS}, got {executor!r}")

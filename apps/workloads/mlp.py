@@ -7,10 +7,6 @@ density MLP on 32 hash features (32 → 64 → 16) and the colour MLP on its 16 
 * ``mlp_fused``: :class:`kernels.fused_mlp.FusedMLP`'s kernels (float16 operands on CUDA, float32 tiles on the CPU).
 * ``mlp_torch``: what the renderer ran before them, :class:`pienerf.nerf.InferenceMLP` (float16 cuBLAS products with
   the ReLU in the epilogue on CUDA, float32 on the CPU).
-* ``mlp_simt``: :class:`pienerf.nerf.InferenceMLP` with ``executor="simt"``, the per-thread Warp kernel of
-  :mod:`kernels.simt_mlp` (float32 weights and sums; float16 features in and outputs on CUDA, float32 on the CPU,
-  where Warp runs it on one thread). Its reference is ``mlp_torch``'s work, the torch executor in the same dtypes, so
-  the ratio is the kernel's speed-up over cuBLAS; ``max_abs_difference`` records how far the colours lie apart.
 * ``mlp_fused_train``: forward and backward (gradients wrt the weights and the features) through
   :class:`kernels.fused_mlp.FusedMLPFunction`, a training step's MLP work.
 
@@ -87,29 +83,6 @@ def bench_mlp_torch(device: str, size: str) -> Case:
     return Case(
         run=run, reference=_reference(field, features, sh), params={**params, "dtype": str(dtype)},
         work=rows / 1e6, unit="Mrows/s", flops=2.0 * weights * rows, reference_name="torch float32 Sequential",
-    )
-
-
-@workload("mlp_simt", "mlp_fused's work by InferenceMLP's simt executor (per-thread Warp kernel), against mlp_torch")
-def bench_mlp_simt(device: str, size: str) -> Case:
-    field, features, sh, weights, params = _setup(size)
-    dtype = torch.float16 if device == "cuda" else torch.float32
-    simt = tuple(InferenceMLP(mlp, dtype, "simt") for mlp in (field.density_mlp, field.color_mlp))
-    cublas = tuple(InferenceMLP(mlp, dtype) for mlp in (field.density_mlp, field.color_mlp))
-    features_cast, sh_cast = features.to(dtype), sh.to(dtype)
-
-    def run():
-        return _pair(*simt, features_cast, sh_cast)
-
-    def reference():
-        return _pair(*cublas, features_cast, sh_cast)
-
-    difference = float((run().float() - reference().float()).abs().max())
-    rows = features.shape[0]
-    return Case(
-        run=run, reference=reference, params={**params, "dtype": str(dtype), "weights": "float32"},
-        work=rows / 1e6, unit="Mrows/s", flops=2.0 * weights * rows, reference_name="InferenceMLP torch executor",
-        extra={"max_abs_difference": difference},
     )
 
 

@@ -19,10 +19,6 @@
   warped by
   :func:`kernels.reference.warp_rays.warp_to_rest_torch`, composited by
   :func:`kernels.reference.volume_render.composite_torch`.
-  The NeRF's MLPs run as :class:`pienerf.render.DeformedRenderer` runs them by default (``mlp_executor="torch"``);
-  the environment variable ``PIE_RENDER_MLP=simt`` opts the renderer into the per-thread Warp kernel of
-  :mod:`kernels.simt_mlp` instead (recorded as the ``mlp_executor`` parameter), e.g.
-  ``PIE_RENDER_MLP=simt python -m apps.bench --workload render_deformed --device cuda --size paper``.
 
 Figures of both workloads on the CPU and on an H100, with their history: ``docs/benchmarks.md``.
 """
@@ -30,7 +26,6 @@ Figures of both workloads on the CPU and on an H100, with their history: ``docs/
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import torch
 
@@ -42,7 +37,6 @@ from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import march_rays
 from kernels.warp_rays import warp_to_rest
 from pienerf.nerf.cameras import orbit_cameras
-from pienerf.nerf.field import INFERENCE_EXECUTORS
 from pienerf.nerf.fitting import NerfFit, dataset_nerf
 from pienerf.nerf.solid import NerfSceneDensity
 from pienerf.paths import SHARED_DATA
@@ -53,8 +47,6 @@ from pienerf.sim.sampling import grid_sample, poisson_disk_sample
 
 _LEGO = SHARED_DATA / "nerf_synthetic_lego"
 _WARP_SAMPLES = {"smoke": 1 << 16, "paper": 1 << 20, "large": 1 << 23}
-_MLP_EXECUTOR_VARIABLE = "PIE_RENDER_MLP"
-"""Environment variable naming ``render_deformed``'s ``mlp_executor`` (module docstring); unset: ``"torch"``."""
 _RESOLUTION = {  # pixels per image side, by size and device
     "smoke": {"cpu": 64, "cuda": 64},
     "paper": {"cpu": 200, "cuda": 800},
@@ -96,18 +88,10 @@ def bench_warp_rays(device: str, size: str) -> Case:
 def _deformed(field, grid, particles, kernel_count: int):
     """A renderer of ``field`` warped by a Q-GMLS body on ``particles``, and a smooth random q."""
     model = QGMLSModel.from_particles(particles, DiscretizationConfig(kernel_count=kernel_count))
-    renderer = DeformedRenderer(field, grid, model, mlp_executor=_mlp_executor())
+    renderer = DeformedRenderer(field, grid, model)
     generator = torch.Generator().manual_seed(0)
     q = 0.02 * torch.randn(model.shape_count, 3, generator=generator, dtype=torch.float64)
     return renderer, q.to(model.device)
-
-
-def _mlp_executor() -> str:
-    """``render_deformed``'s MLP executor, from :data:`_MLP_EXECUTOR_VARIABLE`; an unknown value raises, naming both."""
-    executor = os.environ.get(_MLP_EXECUTOR_VARIABLE, "torch")
-    if executor not in INFERENCE_EXECUTORS:
-        raise ValueError(f"{_MLP_EXECUTOR_VARIABLE}={executor!r} is not one of {INFERENCE_EXECUTORS}; unset it")
-    return executor
 
 
 def _teapot_scene(size: str, resolution: int):
@@ -208,7 +192,6 @@ def bench_render_deformed(device: str, size: str) -> Case:
             "rays": resolution * resolution,
             "ips": renderer.model.ips.count,
             "field": "trained NGPField",
-            "mlp_executor": renderer.mlp_executor,
             **scene,
         },
         work=1.0,

@@ -13,7 +13,6 @@ from pienerf.nerf.cameras import (
 )
 from pienerf.nerf.datasets import MAX_IMAGE_PIXELS, NerfDataset, load_nerf_dataset
 from pienerf.nerf.field import (
-    INFERENCE_EXECUTORS,
     InferenceMLP,
     NerfDensity,
     NGPConfig,
@@ -49,7 +48,6 @@ __all__ = [
     "Cameras",
     "CurvePoint",
     "ERROR_FULL_SCALE",
-    "INFERENCE_EXECUTORS",
     "InferenceMLP",
     "MAX_IMAGE_PIXELS",
     "NGPConfig",

@@ -37,13 +37,11 @@ from kernels import backend
 from kernels.fused_mlp import FusedMLP
 from kernels.hashgrid import HashGridConfig, HashGridEncoding
 from kernels.reference.hashgrid import hashgrid_forward_torch
-from kernels.simt_mlp import simt_mlp_forward, simt_mlp_weights_of
 from kernels.volume_render import composite, march_rays
 from pienerf.sim.density import GRADIENT_CHUNK, DensityField
 
 __all__ = [
     "NGPConfig",
-    "INFERENCE_EXECUTORS",
     "InferenceMLP",
     "MLP_EXECUTORS",
     "NGPField",
@@ -57,10 +55,6 @@ __all__ = [
 
 MLP_EXECUTORS = ("auto", "fused", "torch")
 """Values of :attr:`NGPConfig.mlp`."""
-
-INFERENCE_EXECUTORS = ("torch", "simt")
-"""What runs an :class:`InferenceMLP`: torch's matrix products (cuBLAS on CUDA), or the per-thread Warp kernel of
-:mod:`kernels.simt_mlp`."""
 
 
 @dataclass(frozen=True)
@@ -333,63 +327,41 @@ class NGPField(torch.nn.Module):
         rgb = color_mlp(torch.cat([h, encoded_directions.to(h.dtype)], dim=-1))
         return sigma, rgb
 
-    def half_mlps(self, executor: str = "torch") -> tuple[torch.nn.Module, torch.nn.Module]:
+    def half_mlps(self) -> tuple[torch.nn.Module, torch.nn.Module]:
         """Float16 MLPs ``(density, colour)`` for :meth:`radiance`, for inference only: the field's own fused MLPs
-        where they run the float16 kernels (on CUDA; they follow the weights by themselves) and ``executor`` is
-        ``"torch"``, else float16 copies (:meth:`inference_mlps`; copies: they do not follow later training, see
-        :attr:`weights_version`)."""
+        where they run the float16 kernels (on CUDA; they follow the weights by themselves), else float16 copies
+        (:class:`InferenceMLP`; copies: they do not follow later training, see :attr:`weights_version`)."""
         mlps = (self.density_mlp, self.color_mlp)
-        fused = all(isinstance(m, FusedMLP) and m.runs_kernels(self.aabb.device) for m in mlps)
-        if fused and executor == "torch":
+        if all(isinstance(m, FusedMLP) and m.runs_kernels(self.aabb.device) for m in mlps):
             return mlps
-        return self.inference_mlps(torch.float16, executor)
-
-    def inference_mlps(
-        self, dtype: torch.dtype = torch.float16, executor: str = "torch"
-    ) -> tuple[InferenceMLP, InferenceMLP]:
-        """Copies ``(density, colour)`` of the MLPs for :meth:`radiance` without gradients (:class:`InferenceMLP`):
-        outputs in ``dtype``, run by ``executor`` (:data:`INFERENCE_EXECUTORS`)."""
-        return tuple(InferenceMLP(mlp, dtype, executor) for mlp in (self.density_mlp, self.color_mlp))
+        return tuple(InferenceMLP(mlp, torch.float16) for mlp in mlps)
 
 
 class InferenceMLP(torch.nn.Module):
     """A copy of one of :class:`NGPField`'s MLPs (bias-free ``Linear`` layers, ``ReLU`` between them, an optional
     last ``Sigmoid``) for rendering, without gradients, in a chosen dtype.
 
-    ``executor="torch"``: on CUDA each hidden layer's ReLU runs in its matrix product's epilogue (cuBLASLt, through
+    On CUDA each hidden layer's ReLU runs in its matrix product's epilogue (cuBLASLt, through
     ``torch._addmm_activation``): a layer's activations are then written once instead of being written, read and
     written again by a separate ReLU, a large share of a deformed frame's MLP time (``docs/benchmarks.md``,
-    ``pienerf.render``). Elsewhere the same products and ``relu_`` in place. The weights are kept in ``dtype``.
-
-    ``executor="simt"``: the per-thread Warp kernel of :mod:`kernels.simt_mlp`, which keeps every hidden activation
-    on chip and sums in float32; the weights are kept in float32 (widening float16 weights would cost a conversion
-    per multiply-add) and the outputs are written in ``dtype``. On the CPU Warp runs it on one thread: correct, and
-    slower than torch's products there.
+    ``pienerf.render``). Elsewhere the same products and ``relu_`` in place.
 
     Args:
         mlp: the field's ``torch.nn.Sequential``.
-        dtype: the outputs' dtype (e.g. ``torch.float16``), and the torch executor's weights' and inputs'.
-        executor: :data:`INFERENCE_EXECUTORS`.
+        dtype: the copy's dtype (e.g. ``torch.float16``); its inputs are cast to it.
     """
 
-    def __init__(self, mlp: torch.nn.Sequential, dtype: torch.dtype, executor: str = "torch"):
+    def __init__(self, mlp: torch.nn.Sequential, dtype: torch.dtype):
         super().__init__()
-        if executor not in INFERENCE_EXECUTORS:
-            raise ValueError(f"executor must be one of {INFERENCE_EXECUTORS}, got {executor!r}")
         kinds = [type(layer) for layer in mlp]
         linear = [layer for layer in mlp if isinstance(layer, torch.nn.Linear)]
         expected = [torch.nn.Linear] + [torch.nn.ReLU, torch.nn.Linear] * (len(linear) - 1)
         if kinds not in (expected, expected + [torch.nn.Sigmoid]) or any(layer.bias is not None for layer in linear):
             raise ValueError(f"InferenceMLP takes bias-free Linear layers with ReLU between them, got {kinds}")
-        if executor == "simt" and dtype not in (torch.float16, torch.float32):
-            raise ValueError(f"the simt executor writes float16 or float32, got dtype={dtype}")
         self.dtype = dtype
-        self.executor = executor
         self.sigmoid = kinds[-1] is torch.nn.Sigmoid
-        self.simt_weights = simt_mlp_weights_of(mlp, torch.float32) if executor == "simt" else None
         with torch.no_grad():
-            # the torch executor's weights, transposed once: x @ Wᵀ as addmm's [in, out] operand
-            for i, layer in enumerate(linear if executor == "torch" else []):
+            for i, layer in enumerate(linear):  # weights transposed once: x @ Wᵀ as addmm's [in, out] operand
                 self.register_buffer(f"weight{i}", layer.weight.detach().t().to(dtype).contiguous())
         self.layers = len(linear)
         self._zero: dict[int, torch.Tensor] = {}
@@ -399,11 +371,6 @@ class InferenceMLP(torch.nn.Module):
 
     @torch.no_grad()
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``[N, n_in]`` → ``[N, n_out]`` in :attr:`dtype`."""
-        if self.executor == "simt":
-            if x.dtype not in (torch.float16, torch.float32):
-                x = x.to(self.dtype)
-            return simt_mlp_forward(x, self.simt_weights, self.dtype)
         x = x.to(self.dtype)
         weights = self._weights()
         fused = x.is_cuda and hasattr(torch, "_addmm_activation")

@@ -65,7 +65,7 @@ from kernels.spatial_hash import SpatialHash
 from kernels.volume_render import composite_accumulate, composite_start, gather_ray_rows, march_resume, march_start
 from kernels.warp_rays import splat_occupancy, warp_round
 from pienerf.nerf.cameras import Cameras
-from pienerf.nerf.field import INFERENCE_EXECUTORS, NGPField, OccupancyGrid, render_rays
+from pienerf.nerf.field import NGPField, OccupancyGrid, render_rays
 from pienerf.sim.model import QGMLSModel
 
 __all__ = [
@@ -209,11 +209,6 @@ class DeformedRenderer:
         framework: ``"taichi"`` or ``"warp"``, the kernels of a round (march, warp, composite); ``None``:
             :func:`kernels.backend.default_framework` (Warp on CUDA, where a frame issues dozens of launches and a
             Warp launch costs the host less than a Taichi one).
-        mlp_executor: what evaluates an :class:`pienerf.nerf.NGPField`'s MLPs
-            (:data:`pienerf.nerf.INFERENCE_EXECUTORS`): ``"torch"``, the default (float16 cuBLAS products under
-            ``half_precision``, else the field's own MLPs), or ``"simt"``, copies run by the per-thread Warp kernel of
-            :mod:`kernels.simt_mlp` (float16 outputs under ``half_precision``, else float32; on the CPU it runs on
-            one thread, for tests).
 
     Attributes:
         stats: :class:`RenderStats` of the last :meth:`render`.
@@ -234,7 +229,6 @@ class DeformedRenderer:
         round_samples: int | None = None,
         half_precision: bool | None = None,
         framework: str | None = None,
-        mlp_executor: str = "torch",
     ):
         if not cutoff_scale > 0:
             raise ValueError(f"cutoff_scale must be positive (cuboid half-diagonals), got {cutoff_scale}")
@@ -257,10 +251,7 @@ class DeformedRenderer:
         if half_precision is None:
             half_precision = device.type == "cuda" and isinstance(field, NGPField)
         self.half_precision = bool(half_precision)
-        if mlp_executor not in INFERENCE_EXECUTORS:
-            raise ValueError(f"mlp_executor must be one of {INFERENCE_EXECUTORS}, got {mlp_executor!r}")
-        self.mlp_executor = mlp_executor
-        self._half_copies, self._half_key = None, None  # inference MLPs, and (field, its weights_version) they copy
+        self._half_copies, self._half_key = None, None  # float16 MLPs, and (field, its weights_version) they copy
         # (directions, a copy of them or the caller's key, what the encoding depends on, encoded): _encode
         self._encoded = None
         self.framework = backend.check_framework(framework)
@@ -286,17 +277,12 @@ class DeformedRenderer:
         nearest, _ = rest_hash.knn(centres, 1, max_radius=float(torch.linalg.vector_norm(grid.aabb[1] - grid.aabb[0])))
         self._cell_ip = nearest[:, 0].long()
 
-    def _inference_mlps(self):
-        """The field's MLPs for queries: float16 under :attr:`half_precision`
-        (:meth:`pienerf.nerf.NGPField.half_mlps`), float32 copies run by :attr:`mlp_executor` otherwise, made again
-        whenever the field's weights changed since the last copy (:attr:`pienerf.nerf.NGPField.weights_version`)."""
+    def _half_mlps(self):
+        """The field's MLPs in float16 (:meth:`pienerf.nerf.NGPField.half_mlps`), copied again whenever the field's
+        weights changed since the last copy (:attr:`pienerf.nerf.NGPField.weights_version`)."""
         key = (self.field, self.field.weights_version)
         if self._half_key is None or self._half_key[0] is not key[0] or self._half_key[1] != key[1]:
-            if self.half_precision:
-                copies = self.field.half_mlps(self.mlp_executor)
-            else:
-                copies = self.field.inference_mlps(torch.float32, self.mlp_executor)
-            self._half_copies, self._half_key = copies, key
+            self._half_copies, self._half_key = self.field.half_mlps(), key
         return self._half_copies
 
     def _encode(self, directions: torch.Tensor, reuse: bool, key=None) -> torch.Tensor:
@@ -534,9 +520,8 @@ class DeformedRenderer:
         offsets[1:] = torch.cumsum(keep.view(-1, k).sum(1, dtype=torch.int32), 0)
         with self._precision():
             query = (rest[padded], gather_ray_rows(encoded, rays, padded, k))
-            copies = self.half_precision or self.mlp_executor != "torch"
-            if copies and isinstance(self.field, NGPField):
-                sigma, rgb = self.field.radiance(*query, mlps=self._inference_mlps())
+            if self.half_precision and isinstance(self.field, NGPField):
+                sigma, rgb = self.field.radiance(*query, mlps=self._half_mlps())
             else:
                 sigma, rgb = self.field.radiance(*query)
         sigma, rgb = sigma[:kept], rgb[:kept]

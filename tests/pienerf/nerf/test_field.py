@@ -18,12 +18,10 @@ import torch
 from kernels import backend
 from kernels.hashgrid import HashGridConfig
 from kernels.image_metrics import psnr, ssim
-from kernels.simt_mlp import simt_mlp_forward, simt_mlp_weights_of
 from pienerf import scenes
 from pienerf.nerf.cameras import orbit_cameras
 from pienerf.nerf.datasets import load_nerf_dataset
 from pienerf.nerf.field import (
-    InferenceMLP,
     NerfDensity,
     NGPConfig,
     NGPField,
@@ -542,33 +540,6 @@ def test_radiance_with_float16_mlp_copies_matches_the_field(device):
     torch.testing.assert_close(rgb.float(), rgb_ref, rtol=0, atol=5e-3)
     torch.testing.assert_close(sigma.float(), sigma_ref, rtol=2e-2, atol=1e-3)
     assert all(p.dtype == torch.float32 and p.requires_grad for p in field.parameters() if p.dim() > 1)
-
-
-def test_simt_inference_mlps_run_the_simt_kernel(device):
-    """``InferenceMLP(..., executor="simt")`` gives the kernel's own result (kernels' bounds:
-    tests/kernels/test_simt_mlp.py) in the asked dtype, and the field's radiance through such copies matches its own
-    to float32 rounding (a loose 1e-5 on σ's relative value and on colour in [0, 1]); unknown executors are refused."""
-    field = _field(table_scale=0.5)
-    generator = torch.Generator().manual_seed(5)
-    x = (torch.rand(300, 3, generator=generator) * 1.8 - 0.9).to(backend.torch_device())
-    d = torch.nn.functional.normalize(torch.randn(300, 3, generator=generator), dim=-1).to(x.device)
-    encoded = field.encode_directions(d)
-    mlps = field.inference_mlps(torch.float32, "simt")
-    assert all(m.executor == "simt" and m.dtype == torch.float32 for m in mlps)
-    features = torch.rand(7, 16, generator=generator).to(x.device)
-    expected = simt_mlp_forward(features, simt_mlp_weights_of(field.density_mlp), torch.float16)
-    torch.testing.assert_close(
-        InferenceMLP(field.density_mlp, torch.float16, "simt")(features), expected, rtol=0, atol=0
-    )
-    with torch.no_grad():
-        sigma, rgb = field.radiance(x, encoded, mlps=mlps)
-        sigma_ref, rgb_ref = field.radiance(x, encoded)
-    torch.testing.assert_close(rgb, rgb_ref, rtol=0, atol=1e-5)
-    torch.testing.assert_close(sigma, sigma_ref, rtol=1e-5, atol=1e-6)
-    with pytest.raises(ValueError, match="executor must be one of"):
-        InferenceMLP(field.density_mlp, torch.float16, "cublas")
-    with pytest.raises(ValueError, match="writes float16 or float32"):
-        InferenceMLP(field.density_mlp, torch.bfloat16, "simt")
 
 
 def test_fused_mlps_keep_the_keys_and_agree_with_torch(device):

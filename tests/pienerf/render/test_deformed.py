@@ -388,25 +388,6 @@ def test_float16_copies_follow_the_fields_weights(teapot):
     torch.testing.assert_close(after, fresh, rtol=0, atol=1e-3)  # float16 products in either renderer
 
 
-def test_simt_mlps_render_the_torch_image(teapot):
-    """``mlp_executor="simt"`` renders a random NGP field as the default executor does: to float32 rounding on the CPU
-    (both float32; 1e-5 on colours in [0, 1]), and on CUDA to float16's (torch's float16 products against the kernel's
-    float32 sums of float32 weights, both rounding outputs to float16: 2e-3, a few float16 spacings of 1)."""
-    model, _, _, q = teapot
-    field, grid = _random_teapot_field(seed=1)
-    cameras = _look_at((-1.2, 1.6, -1.0), (0.0, 0.1, 0.1), (0.0, 1.0, 0.0), 12, fov=0.9)
-    images = {}
-    for executor in ("torch", "simt"):
-        renderer = DeformedRenderer(field, grid, model, mlp_executor=executor)
-        with torch.no_grad():
-            images[executor] = renderer.render(q, cameras)["rgb"]
-    tolerance = 2e-3 if backend.torch_device().type == "cuda" else 1e-5
-    assert float(images["torch"].std()) > 1e-3, "the random field must show something"
-    torch.testing.assert_close(images["simt"], images["torch"], rtol=0, atol=tolerance)
-    with pytest.raises(ValueError, match="mlp_executor must be one of"):
-        DeformedRenderer(field, grid, model, mlp_executor="cublas")
-
-
 def _light_cosine(ground: GroundPlane) -> float:
     light = torch.nn.functional.normalize(torch.tensor(ground.light_direction), dim=0)
     return float(light[1])
