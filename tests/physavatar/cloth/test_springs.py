@@ -68,7 +68,13 @@ def test_a_spring_on_a_boundary_vertex_changes_nothing(device):
         state_in, state_out = solver.initial_state(), solver.initial_state()
         solver.step(state_in, state_out, _control(x, top, springs), DT)
         runs.append(state_out.x.cpu())
-    assert torch.equal(runs[0], runs[1])
+    if backend.torch_device().type == "cpu":
+        assert torch.equal(runs[0], runs[1])  # the same arithmetic in the same order
+    else:
+        # a GPU's sums run in its atomics' order, so the two runs' iterates differ in rounding; each run ends within
+        # its last Newton step (below tolerance · Δt) of the step's exact minimiser, which the spring does not move
+        bound = 2.0 * solver.config.newton_tolerance * DT
+        assert float((runs[0] - runs[1]).abs().max()) <= bound
 
 
 def test_malformed_springs_are_refused_naming_the_fix(device):
