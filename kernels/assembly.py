@@ -33,7 +33,7 @@ import warp as wp
 
 from kernels import backend, cudss
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = ["BlockPattern", "block_keys", "block_pattern", "scatter_hessians"]
 

@@ -32,7 +32,7 @@ import warp as wp
 
 from kernels import backend
 
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = ["BoxTree", "OverlapQuery", "OverlapSearch", "find_overlaps"]
 
@@ -196,6 +196,7 @@ class BoxTree:
                 inputs=[backend.warp_arg(lo, wp.vec3d), backend.warp_arg(hi, wp.vec3d), backend.warp_arg(prims)],
                 outputs=[self._lowers, self._uppers],
                 device=device,
+                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
             self._bvh = wp.Bvh(self._lowers, self._uppers)
 
@@ -217,6 +218,7 @@ class BoxTree:
             inputs=[backend.warp_arg(lo, wp.vec3d), backend.warp_arg(hi, wp.vec3d), backend.warp_arg(self.prims)],
             outputs=[self._lowers, self._uppers],
             device=self._lowers.device,
+            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
         self._bvh.refit()
 

@@ -33,7 +33,7 @@ from kernels import backend, cusolver
 
 # Every derivative in the kernels that use these functions is written out in closed form; Warp's adjoint code would
 # only add compile time.
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = [
     "ElementTerms",

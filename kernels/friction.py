@@ -54,7 +54,7 @@ from kernels.ipc_barrier import (
 )
 
 # Every derivative here is written out in closed form; Warp's adjoint code would only add compile time.
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = ["friction_potential", "lagged_contacts"]
 
@@ -424,6 +424,7 @@ def lagged_contacts(
             inputs=[x_arg, backend.warp_arg(pt_pairs), *scalars],
             outputs=outputs,
             device=backend.warp_device(),
+            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     if q:
         wp.launch(
@@ -432,6 +433,7 @@ def lagged_contacts(
             inputs=[x_arg, backend.warp_arg(ee_pairs), backend.warp_arg(ee_eps_x), *scalars, parallel_tolerance(x), p],
             outputs=outputs,
             device=backend.warp_device(),
+            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     keep = torch.nonzero(active).squeeze(1)  # the one host read
     if keep.shape[0] == n:

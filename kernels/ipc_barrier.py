@@ -36,7 +36,7 @@ from kernels.element_terms import (
 )
 
 # Every derivative here is written out in closed form; Warp's adjoint code would only add compile time.
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = [
     "EDGE_EDGE_TYPES",

@@ -27,7 +27,7 @@ import warp as wp
 from kernels import backend
 
 # The renderer is not differentiated; Warp's adjoint code would only add compile time.
-wp.set_module_options({"enable_backward": False})
+wp.set_module_options({"enable_backward": False, "block_dim": backend.SMALL_GRID_BLOCK_DIM})
 
 __all__ = ["ClosestPoints", "MeshBVH", "RayHits", "Shading", "cast_rays", "shade"]
 
@@ -243,6 +243,7 @@ class MeshBVH:
                     backend.to_warp(bary, dtype=wp.vec2),
                 ],
                 device=backend.warp_device(),
+                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
         return RayHits(t, face, bary)
 
@@ -271,6 +272,7 @@ class MeshBVH:
                     backend.to_warp(bary, dtype=wp.vec2),
                 ],
                 device=backend.warp_device(),
+                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
         return ClosestPoints(distance, face, bary)
 
@@ -317,6 +319,7 @@ class MeshBVH:
                     backend.to_warp(sums),
                 ],
                 device=backend.warp_device(),
+                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
             # Σ atan2 = Σ Ω/2, so the winding number Σ Ω / 4π exceeds ½ where the sum exceeds π
             return sums.sum(0) > math.pi
@@ -326,6 +329,7 @@ class MeshBVH:
             dim=count,
             inputs=[self.mesh.id, backend.to_warp(points, dtype=wp.vec3), backend.to_warp(flags)],
             device=backend.warp_device(),
+            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
         return flags.bool()
 
@@ -512,6 +516,7 @@ def shade(
                 backend.to_warp(depth),
             ],
             device=backend.warp_device(),
+            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     return Shading(rgba, depth)
 
