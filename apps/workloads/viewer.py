@@ -18,6 +18,11 @@ record carries the median step and update (``step_median_s``, ``update_median_s`
 (``breakdown_s``: each part's median over the frames run, so that the first frames' kernel builds do not count),
 the Newton iterations and the most vertices found inside the body over the timed frames (``vertices_inside_body``,
 0 by the barrier's guarantee).
+
+``avatar_inside``: that frame's test for garment vertices inside the body (the counter on the page), on the same
+garment and body: the generalised winding number as the exact sum of every body face's solid angle
+(``MeshBVH.inside(method="direct")``), beside the BVH's fast winding number (``method="tree"``) as the reference.
+The record says whether the two found the same vertices inside (``agree``) and how many (``inside``).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ import umsgpack
 
 from apps.workloads import Case, WorkloadUnavailable, workload
 from kernels import backend
+from kernels.raycast import MeshBVH
 from physavatar.garment import SHARED_GARMENTS
 from physavatar.session import AvatarConfig, AvatarSimulation
 from pienerf.nerf.cameras import orbit_cameras
@@ -164,4 +170,33 @@ def bench_viewer_frame_avatar(device: str, size: str) -> Case:
         unit="frames/s",
         extra=extra,
         frame_seconds=simulation.dt,
+    )
+
+
+@workload("avatar_inside", "the avatar viewer's inside test: solid-angle sum over the body's faces vs the BVH's")
+def bench_avatar_inside(device: str, size: str) -> Case:
+    skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
+    simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
+    simulation.step()  # the garment settled one frame onto the walking body
+    body = simulation.body_now.to(torch.float32)
+    bvh = MeshBVH(body, simulation.body_faces.to(body.device), winding_numbers=True)
+    x = simulation.state.x.to(torch.float32)
+    extra: dict = {}
+
+    def observe() -> None:
+        direct, tree = bvh.inside(x, method="direct"), bvh.inside(x, method="tree")
+        extra.update(agree=bool(torch.equal(direct, tree)), inside=int(direct.sum()))
+
+    return Case(
+        run=lambda: bvh.inside(x, method="direct"),
+        reference=lambda: bvh.inside(x, method="tree"),
+        reference_name="fast winding number through the BVH (Warp)",
+        params={
+            "garment_vertices": int(x.shape[0]),
+            "body_faces": int(simulation.body_faces.shape[0]),
+        },
+        work=x.shape[0] / 1e6,
+        unit="Mpoints/s",
+        extra=extra,
+        observe=observe,
     )

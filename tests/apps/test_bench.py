@@ -152,6 +152,15 @@ def test_the_avatar_viewer_frame_drags_the_skirt_and_reports_its_parts(device):
     assert record["vertices_inside_body"] == 0 and record["realtime_factor"] > 0
 
 
+def test_the_avatar_inside_workload_finds_what_the_tree_finds(device):
+    """The direct solid-angle sum and the BVH's fast winding number find the same garment vertices inside the body
+    (none: the garment stands one barrier-guarded step away from it), both timed."""
+    (record,) = bench.main(["--workload", "avatar_inside", "--device", device, "--size", "smoke", "--reps", "2"])
+    assert record["params"]["garment_vertices"] == 60 and record["params"]["body_faces"] > 1000
+    assert record["agree"] and record["inside"] == 0
+    assert record["median_s"] > 0 and record["reference_median_s"] > 0 and record["unit"] == "Mpoints/s"
+
+
 def test_qgmls_assemble_workloads_say_how_they_ran(device):
     """The assembly runs as the solver's device loop runs it, captured on CUDA only, with the solver's default block
     products (float32 on CUDA, float64 on the CPU) beside float64 ones, each beside the same reference."""
