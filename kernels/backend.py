@@ -50,6 +50,7 @@ __all__ = [
     "taichi_arg",
     "to_torch",
     "to_warp",
+    "warp_launch",
     "torch_device",
     "load_warp_modules",
     "warp_arg",
@@ -71,8 +72,8 @@ a BVH or filling a float64 element matrix (the garment simulator's contact, cand
 mesh queries): with Warp's default of 256 such a launch runs on a few of the GPU's streaming multiprocessors
 (3.7k garment vertices: 15 blocks for an H200's 132) and waits on one thread's latency. 64 spreads it four times
 wider and still lets a multiprocessor hold its full 2048 threads for large launches. A module takes it with
-``wp.set_module_options({"block_dim": SMALL_GRID_BLOCK_DIM})``, which :func:`launch` honours, and ``block_dim=`` at
-each of its own ``wp.launch`` calls (Warp's launches use 256 unless told); CPU launches ignore it."""
+``wp.set_module_options({"block_dim": SMALL_GRID_BLOCK_DIM})``, which :func:`launch` and :func:`warp_launch` honour
+(Warp's own launches use 256 unless told); CPU launches ignore it."""
 
 _device: str | None = None
 
@@ -294,8 +295,7 @@ class _Replay:
         params = [
             warp_arg(a) if isinstance(a, torch.Tensor) else warp_arg(*a) if isinstance(a, tuple) else a for a in args
         ]
-        # the kernel module's own block size (Warp's launches default to 256 whatever the module says)
-        block_dim = self.kernel.module.options.get("block_dim") if device.startswith("cuda") else None
+        block_dim = _block_dim(self.kernel, device)
         command = wp.launch(self.kernel, dim=dim, inputs=params, device=device, record_cmd=True, block_dim=block_dim)
         if not isinstance(command, wp.Launch):  # a launch Warp does not record (none, for zero threads)
             return
@@ -336,6 +336,22 @@ class _Replay:
 
 
 _REPLAYS: dict[tuple, _Replay] = {}
+
+
+def _block_dim(kernel, device: str) -> int | None:
+    """The block size of ``kernel``'s module (``wp.set_module_options({"block_dim": ...})``) for a CUDA launch, which
+    Warp's launches do not read by themselves (they take 256 unless told); ``None`` on the CPU."""
+    return kernel.module.options.get("block_dim") if device.startswith("cuda") else None
+
+
+def warp_launch(kernel, dim: int | tuple[int, ...], **kwargs) -> None:
+    """``wp.launch(kernel, dim, ...)`` (``inputs``, ``outputs``, ``device``) in blocks of the kernel module's own size
+    (:data:`SMALL_GRID_BLOCK_DIM` where a module asks for it): for launches on ``wp.array`` arguments that
+    :func:`launch` does not take."""
+    import warp as wp
+
+    device = str(kwargs.get("device") or warp_device())
+    wp.launch(kernel, dim=dim, block_dim=_block_dim(kernel, device), **kwargs)
 
 
 def launch(kernel, dim: int | tuple[int, ...], args: list) -> None:

@@ -190,13 +190,12 @@ class BoxTree:
             device = backend.warp_device()
             self._lowers = wp.empty(prims.shape[0], dtype=wp.vec3, device=device)
             self._uppers = wp.empty(prims.shape[0], dtype=wp.vec3, device=device)
-            wp.launch(
+            backend.warp_launch(
                 _bounds_kernel,
                 dim=prims.shape[0],
                 inputs=[backend.warp_arg(lo, wp.vec3d), backend.warp_arg(hi, wp.vec3d), backend.warp_arg(prims)],
                 outputs=[self._lowers, self._uppers],
                 device=device,
-                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
             self._bvh = wp.Bvh(self._lowers, self._uppers)
 
@@ -212,13 +211,12 @@ class BoxTree:
         self.lo, self.hi = lo, hi
         if self._bvh is None:
             return
-        wp.launch(
+        backend.warp_launch(
             _bounds_kernel,
             dim=self.prims.shape[0],
             inputs=[backend.warp_arg(lo, wp.vec3d), backend.warp_arg(hi, wp.vec3d), backend.warp_arg(self.prims)],
             outputs=[self._lowers, self._uppers],
             device=self._lowers.device,
-            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
         self._bvh.refit()
 

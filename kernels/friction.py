@@ -418,22 +418,20 @@ def lagged_contacts(
     ]
     scalars = [wp.float64(dhat2), wp.float64(stiffness), wp.float64(mu)]
     if p:
-        wp.launch(
+        backend.warp_launch(
             _point_triangle_contact_kernel,
             dim=p,
             inputs=[x_arg, backend.warp_arg(pt_pairs), *scalars],
             outputs=outputs,
             device=backend.warp_device(),
-            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     if q:
-        wp.launch(
+        backend.warp_launch(
             _edge_edge_contact_kernel,
             dim=q,
             inputs=[x_arg, backend.warp_arg(ee_pairs), backend.warp_arg(ee_eps_x), *scalars, parallel_tolerance(x), p],
             outputs=outputs,
             device=backend.warp_device(),
-            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     keep = torch.nonzero(active).squeeze(1)  # the one host read
     if keep.shape[0] == n:

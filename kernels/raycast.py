@@ -230,7 +230,7 @@ class MeshBVH:
         face = torch.empty(count, dtype=torch.int32, device=device)
         bary = torch.empty(count, 2, dtype=torch.float32, device=device)
         if count:
-            wp.launch(
+            backend.warp_launch(
                 _cast_rays,
                 dim=count,
                 inputs=[
@@ -243,7 +243,6 @@ class MeshBVH:
                     backend.to_warp(bary, dtype=wp.vec2),
                 ],
                 device=backend.warp_device(),
-                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
         return RayHits(t, face, bary)
 
@@ -260,7 +259,7 @@ class MeshBVH:
         face = torch.empty(count, dtype=torch.int32, device=device)
         bary = torch.empty(count, 2, dtype=torch.float32, device=device)
         if count:
-            wp.launch(
+            backend.warp_launch(
                 _closest_points,
                 dim=count,
                 inputs=[
@@ -272,7 +271,6 @@ class MeshBVH:
                     backend.to_warp(bary, dtype=wp.vec2),
                 ],
                 device=backend.warp_device(),
-                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
         return ClosestPoints(distance, face, bary)
 
@@ -308,7 +306,7 @@ class MeshBVH:
         if method == "direct":
             chunks = -(-faces // _FACES_PER_THREAD)
             sums = torch.empty(chunks, count, dtype=torch.float32, device=points.device)
-            wp.launch(
+            backend.warp_launch(
                 _solid_angle_sums,
                 dim=(chunks, count),
                 inputs=[
@@ -319,17 +317,15 @@ class MeshBVH:
                     backend.to_warp(sums),
                 ],
                 device=backend.warp_device(),
-                block_dim=backend.SMALL_GRID_BLOCK_DIM,
             )
             # Σ atan2 = Σ Ω/2, so the winding number Σ Ω / 4π exceeds ½ where the sum exceeds π
             return sums.sum(0) > math.pi
         flags = torch.zeros(count, dtype=torch.int32, device=points.device)
-        wp.launch(
+        backend.warp_launch(
             _inside,
             dim=count,
             inputs=[self.mesh.id, backend.to_warp(points, dtype=wp.vec3), backend.to_warp(flags)],
             device=backend.warp_device(),
-            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
         return flags.bool()
 
@@ -494,7 +490,7 @@ def shade(
     rgba = torch.empty(count, 4, dtype=torch.float32, device=origins.device)
     depth = torch.empty(count, dtype=torch.float32, device=origins.device)
     if count:
-        wp.launch(
+        backend.warp_launch(
             _shade,
             dim=count,
             inputs=[
@@ -516,7 +512,6 @@ def shade(
                 backend.to_warp(depth),
             ],
             device=backend.warp_device(),
-            block_dim=backend.SMALL_GRID_BLOCK_DIM,
         )
     return Shading(rgba, depth)
 
