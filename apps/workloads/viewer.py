@@ -106,15 +106,20 @@ def _packed(positions: torch.Tensor) -> bytes:
     return umsgpack.packb({"type": "set_vertices", "positions": umsgpack.Ext(0x17, data.tobytes())})
 
 
-@workload("viewer_frame_avatar", "the avatar viewer's frame while dragging: one garment step + one mesh update")
-def bench_viewer_frame_avatar(device: str, size: str) -> Case:
+def _avatar_session(name: str, size: str) -> AvatarSimulation:
+    """The avatar viewer's session with the garment of ``size`` (module docstring), for the workload ``name``."""
     if size == "large" and not (SHARED_GARMENTS / "skirt7271.obj").is_file():
         raise WorkloadUnavailable(
-            f"viewer_frame_avatar --size large needs the DiffCloth skirt skirt7271.obj, absent from {SHARED_GARMENTS}; "
+            f"{name} --size large needs the DiffCloth skirt skirt7271.obj, absent from {SHARED_GARMENTS}; "
             "put the project's shared data folder beside the checkout"
         )
     skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
-    simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
+    return AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
+
+
+@workload("viewer_frame_avatar", "the avatar viewer's frame while dragging: one garment step + one mesh update")
+def bench_viewer_frame_avatar(device: str, size: str) -> Case:
+    simulation = _avatar_session("viewer_frame_avatar", size)
     x = simulation.state.x.cpu()
     front = x[:, 2] > x[:, 2].mean()
     hem = int(torch.where(front, x[:, 1], torch.full_like(x[:, 1], math.inf)).argmin())
@@ -175,17 +180,13 @@ def bench_viewer_frame_avatar(device: str, size: str) -> Case:
 
 @workload("avatar_inside", "the avatar viewer's inside test: solid-angle sum over the body's faces vs the BVH's")
 def bench_avatar_inside(device: str, size: str) -> Case:
-    skirt = (5, 12) if size == "smoke" else AvatarConfig().skirt
-    simulation = AvatarSimulation(AvatarConfig(garment=_AVATAR_GARMENT[size], skirt=skirt))
+    simulation = _avatar_session("avatar_inside", size)
     simulation.step()  # the garment settled one frame onto the walking body
     body = simulation.body_now.to(torch.float32)
     bvh = MeshBVH(body, simulation.body_faces.to(body.device), winding_numbers=True)
     x = simulation.state.x.to(torch.float32)
-    extra: dict = {}
-
-    def observe() -> None:
-        direct, tree = bvh.inside(x, method="direct"), bvh.inside(x, method="tree")
-        extra.update(agree=bool(torch.equal(direct, tree)), inside=int(direct.sum()))
+    direct = bvh.inside(x, method="direct")  # the same points every repetition: compared once
+    extra = {"agree": bool(torch.equal(direct, bvh.inside(x, method="tree"))), "inside": int(direct.sum())}
 
     return Case(
         run=lambda: bvh.inside(x, method="direct"),
@@ -198,5 +199,4 @@ def bench_avatar_inside(device: str, size: str) -> Case:
         work=x.shape[0] / 1e6,
         unit="Mpoints/s",
         extra=extra,
-        observe=observe,
     )
